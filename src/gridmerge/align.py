@@ -1,0 +1,526 @@
+"""Aligning two maps: features, matches, a robust transform, refinement, verification.
+
+:func:`align` is the entry point. It returns an :class:`AlignResult` whose ``success`` is
+``False`` (with a ``message`` saying why) whenever the evidence for the transform is too
+weak: a wrong merge is worse than no merge.
+
+Methods
+-------
+``"sift"`` (default)
+    SIFT keypoints with the paper's parameters, FLANN matching with Lowe's ratio test,
+    RANSAC (MSAC scoring, local optimisation) for a similarity transform, least squares on
+    the inliers, then sub-pixel refinement against the cells of both maps.
+``"paper"``
+    The paper as written: SIFT, nearest-neighbour matching by Euclidean distance, and the
+    5-parameter transform ``T(dx, dy) R(theta) S(sx, sy)`` as the mean of the cluster of
+    similar 3-point solutions. No refinement.
+
+Both are verified the same way (:mod:`gridmerge.verify`).
+
+Examples
+--------
+>>> import gridmerge
+>>> from gridmerge import samples
+>>> a, b, truth = samples.table1_pair()
+>>> r = gridmerge.align(a, b)
+>>> r.success, round(r.rotation_deg, 1), round(r.scale, 3)
+(True, 30.0, 0.95)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .errors import GridMergeError
+from .estimate import paper_consensus, ransac, similarity_hypotheses
+from .features import FeatureExtractor, Features, SIFT
+from .grid import OccupancyGrid
+from .matching import knn, match_nn, match_smnn, match_snn
+from .refine import refine_direct
+from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
+from .verify import Verification, verify
+
+__all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "default_extractor"]
+
+
+@dataclass(frozen=True)
+class AlignOptions:
+    """Settings of :func:`align`. Every field has a working default.
+
+    Attributes
+    ----------
+    ratio : float
+        Lowe's ratio test threshold (``"ransac"``).
+    neighbours : int
+        Candidate matches per keypoint of a (``"sift"``).
+    hypotheses : int
+        Candidate transforms verified against the maps (``"sift"``).
+    wall_tolerance : float
+        Distance (a's cells) within which walls of the two maps count as one.
+    mutual : bool
+        Keep only mutual nearest neighbours as well.
+    matcher : {"flann", "brute"}
+        FLANN kd-trees (approximate, fast) or exhaustive search.
+    residual_threshold : float
+        RANSAC inlier threshold, in a's pixels.
+    max_trials : int
+        RANSAC samples at most.
+    min_scale, max_scale : float
+        Plausible range of the scale between the maps (a's pixels per b's pixel).
+    refine : bool
+        Refine against the maps' cells (``"sift"``).
+    paper_samples : int
+        Random 3-point samples of the paper's consensus (``"paper"``).
+    min_inliers : int
+        Decline with fewer inlier correspondences.
+    min_acceptance : float
+        Decline below this acceptance index.
+    min_wall_agreement : float
+        Decline when fewer walls than this share coincide in the overlap.
+    min_overlap_cells : int
+        Decline when the maps share fewer known cells.
+    min_confidence : float
+        Decline below this confidence.
+    max_keypoints : int
+        Strongest keypoints kept per map (bounds time and memory).
+    """
+
+    ratio: float = 0.8
+    neighbours: int = 3
+    hypotheses: int = 6
+    wall_tolerance: float = 3.0
+    mutual: bool = False
+    matcher: str = "flann"
+    residual_threshold: float = 3.0
+    max_trials: int = 5000
+    min_scale: float = 0.2
+    max_scale: float = 5.0
+    refine: bool = True
+    paper_samples: int = 4000
+    min_inliers: int = 8
+    min_acceptance: float = 0.7
+    min_wall_agreement: float = 0.4
+    min_overlap_cells: int = 100
+    min_confidence: float = 0.5
+    max_keypoints: int = 20000
+
+
+@dataclass
+class AlignResult:
+    """The outcome of :func:`align`: b's transform into a, and how far to trust it.
+
+    Attributes
+    ----------
+    success : bool
+        ``True`` when the maps were aligned with enough confidence.
+    transform : AffineTransform or None
+        Maps b's image pixels to a's image pixels; ``None`` when declined.
+    candidate : AffineTransform or None
+        The best transform found, even when declined (for diagnosis only).
+    metric_transform : AffineTransform or None
+        ``transform`` between the maps' metric frames (b's metres -> a's metres).
+    confidence : float
+        In ``[0, 1]``.
+    acceptance_index : float
+        Birk & Carpin's index over the overlap (``nan`` without overlap).
+    inliers : int
+        Correspondences consistent with the transform.
+    matches : int
+        Correspondences after matching.
+    keypoints : tuple of int
+        Keypoints found in a and in b.
+    method : str
+    message : str
+        Why the alignment was declined, or a short summary.
+    elapsed_s : float
+        Wall time of the alignment.
+    verification : Verification or None
+    inlier_xy : (K, 2, 2) float array
+        Inlier correspondences ``[[xb, yb], [xa, ya]]`` (for plots).
+    details : dict
+        Method-specific diagnostics (JSON-ready).
+    """
+
+    success: bool
+    transform: AffineTransform | None
+    candidate: AffineTransform | None
+    metric_transform: AffineTransform | None
+    confidence: float
+    acceptance_index: float
+    inliers: int
+    matches: int
+    keypoints: tuple[int, int]
+    method: str
+    message: str
+    elapsed_s: float = 0.0
+    verification: Verification | None = None
+    inlier_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)), repr=False)
+    details: dict = field(default_factory=dict, repr=False)
+
+    def __bool__(self) -> bool:
+        return self.success
+
+    # -------------------------------------------------------------- accessors
+    @property
+    def matrix(self) -> np.ndarray | None:
+        """``(2, 3)`` float array mapping b's image pixels to a's, or ``None`` when declined."""
+        return None if self.transform is None else self.transform.matrix
+
+    @property
+    def rotation_deg(self) -> float:
+        t = self.transform or self.candidate
+        return math.nan if t is None else math.degrees(t.rotation)
+
+    @property
+    def scale(self) -> float:
+        t = self.transform or self.candidate
+        return math.nan if t is None else t.scale
+
+    @property
+    def metric(self) -> dict | None:
+        """b's map frame in a's: ``{"x", "y", "yaw", "scale"}`` (metres, radians)."""
+        m = self.metric_transform
+        if m is None or self.transform is None:
+            return None
+        x, y = m.translation
+        return {"x": float(x), "y": float(y), "yaw": float(m.rotation), "scale": float(m.scale)}
+
+    # ------------------------------------------------------------ save/load
+    def to_dict(self) -> dict:
+        """A JSON-ready dictionary (the CLI's ``--json`` output)."""
+        t = self.transform
+        d: dict = {
+            "success": bool(self.success),
+            "method": self.method,
+            "message": self.message,
+            "matrix": None if t is None else t.matrix.tolist(),
+            "rotation_deg": None if t is None else math.degrees(t.rotation),
+            "scale": None if t is None else t.scale,
+        }
+        if t is not None and not isinstance(t, SimilarityTransform):
+            sx, sy = t.scale_xy
+            d["scale_x"], d["scale_y"] = sx, sy
+        d["translation_px"] = None if t is None else t.translation.tolist()
+        d["metric"] = self.metric
+        d["confidence"] = _finite_or_none(self.confidence)
+        d["acceptance_index"] = _finite_or_none(self.acceptance_index)
+        d["inliers"] = int(self.inliers)
+        d["matches"] = int(self.matches)
+        d["keypoints"] = [int(k) for k in self.keypoints]
+        d["elapsed_s"] = float(self.elapsed_s)
+        d["verification"] = None if self.verification is None else self.verification.to_dict()
+        d["transform"] = None if t is None else t.to_dict()
+        d["candidate"] = None if self.candidate is None else self.candidate.to_dict()
+        d["metric_transform"] = None if self.metric_transform is None else self.metric_transform.to_dict()
+        d["details"] = self.details
+        return d
+
+    def to_json(self, **kwargs) -> str:
+        return json.dumps(self.to_dict(), **kwargs)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "AlignResult":
+        """Rebuild a result saved with :meth:`to_dict` (inlier coordinates are not saved)."""
+
+        def tr(key):
+            return None if d.get(key) is None else AffineTransform.from_dict(d[key])
+
+        v = d.get("verification")
+        return cls(
+            success=bool(d["success"]),
+            transform=tr("transform"),
+            candidate=tr("candidate"),
+            metric_transform=tr("metric_transform"),
+            confidence=_none_to_nan(d.get("confidence")),
+            acceptance_index=_none_to_nan(d.get("acceptance_index")),
+            inliers=int(d.get("inliers", 0)),
+            matches=int(d.get("matches", 0)),
+            keypoints=tuple(d.get("keypoints", (0, 0))),  # type: ignore[arg-type]
+            method=d.get("method", ""),
+            message=d.get("message", ""),
+            elapsed_s=float(d.get("elapsed_s", 0.0)),
+            verification=None if v is None else Verification(**{k: _none_to_nan(x) if k in ("acceptance_index", "wall_agreement") else x for k, x in v.items()}),
+            details=d.get("details", {}),
+        )
+
+    def save(self, path) -> None:
+        """Write :meth:`to_dict` as JSON (atomically)."""
+        from .io.atomic import atomic_write
+
+        atomic_write(Path(path), (self.to_json(indent=2) + "\n").encode())
+
+    @classmethod
+    def load(cls, path) -> "AlignResult":
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+
+def _finite_or_none(v):
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+def _none_to_nan(v):
+    return math.nan if v is None else float(v)
+
+
+def default_extractor(options: AlignOptions | None = None) -> FeatureExtractor:
+    """The feature extractor of the built-in methods: SIFT with the paper's parameters."""
+    opts = options or AlignOptions()
+    return FeatureExtractor(SIFT(), max_keypoints=opts.max_keypoints)
+
+
+# ---------------------------------------------------------------- estimators
+@dataclass
+class _Estimate:
+    transform: AffineTransform | None
+    inliers: np.ndarray
+    src: np.ndarray
+    dst: np.ndarray
+    message: str = ""
+    details: dict = field(default_factory=dict)
+    verification: Verification | None = None
+
+
+def _scale_ok(opts: AlignOptions) -> Callable[[AffineTransform], bool]:
+    def ok(model: AffineTransform) -> bool:
+        sx, sy = model.scale_xy
+        return opts.min_scale <= sx <= opts.max_scale and opts.min_scale <= sy <= opts.max_scale
+
+    return ok
+
+
+def _correspondences(fa: Features, fb: Features, pairs: np.ndarray):
+    # Transforms map b -> a: source points in b, destination points in a.
+    return fb.xy[pairs[:, 1]], fa.xy[pairs[:, 0]]
+
+
+def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
+    matcher = match_smnn if opts.mutual else match_snn
+    _, pairs = matcher(fa.descriptors, fb.descriptors, ratio=opts.ratio, method=opts.matcher)
+    src, dst = _correspondences(fa, fb, pairs)
+    if len(src) < 2:
+        return _Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
+    model, inl = ransac(
+        (src, dst),
+        SimilarityTransform,
+        2,
+        opts.residual_threshold,
+        rng=rng,
+        max_trials=opts.max_trials,
+        is_model_valid=_scale_ok(opts),
+    )
+    if model is None:
+        return _Estimate(None, inl, src, dst, "no consistent transform among the matches")
+    details: dict = {}
+    if opts.refine and inl.sum() >= 2:
+        refined, report = refine_direct(a, b, model, rng=rng)
+        details["refine"] = {
+            "accepted": report.accepted,
+            "iterations": report.iterations,
+            "points": report.points,
+            "shift_px": report.shift_px,
+        }
+        if report.accepted:
+            model = refined
+            inl = model.residuals(src, dst) < opts.residual_threshold
+    return _Estimate(model, inl, src, dst, details=details)
+
+
+def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
+    # Every keypoint of a gets its k nearest neighbours in b: on real maps the right
+    # match is often not the nearest, and the ratio test would throw it away.
+    dists, idxs = knn(fa.descriptors, fb.descriptors, opts.neighbours, method=opts.matcher)
+    ia, rank = np.nonzero(idxs >= 0)
+    pairs = np.stack([ia, idxs[ia, rank]], axis=1)
+    src, dst = _correspondences(fa, fb, pairs)
+    if len(src) < 2:
+        return _Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
+    angle = np.deg2rad(fa.angle[pairs[:, 0]] - fb.angle[pairs[:, 1]])
+    scale = fa.size[pairs[:, 0]] / np.maximum(fb.size[pairs[:, 1]], 1e-9)
+    hyps = similarity_hypotheses(
+        src, dst, angle, scale,
+        threshold=opts.residual_threshold,
+        max_hypotheses=opts.hypotheses,
+        min_scale=opts.min_scale,
+        max_scale=opts.max_scale,
+    )
+    if not hyps:
+        return _Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches")
+    scored = []
+    for h in hyps[: opts.hypotheses]:
+        model, inl = h.transform, h.inliers
+        refined = None
+        if opts.refine:
+            refined, report = refine_direct(a, b, model, rng=rng)
+            if report.accepted:
+                model = refined
+                inl = model.residuals(src, dst) < opts.residual_threshold
+        v = verify(a, b, model, tolerance=opts.wall_tolerance)
+        wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
+        scored.append((_evidence(int(inl.sum()), 2) * wall, model, inl, v, h.support))
+    scored.sort(key=lambda t: -t[0])
+    best = scored[0]
+    details = {
+        "matches_per_keypoint": opts.neighbours,
+        "hypotheses": [
+            {"score": round(s, 4), "support": sup, "wall_agreement": _finite_or_none(v.wall_agreement),
+             "rotation_deg": round(math.degrees(m.rotation), 3), "scale": round(m.scale, 5)}
+            for s, m, _, v, sup in scored
+        ],
+        "runner_up_ratio": (scored[1][0] / best[0]) if len(scored) > 1 and best[0] > 0 else 0.0,
+    }
+    return _Estimate(best[1], best[2], src, dst, details=details, verification=best[3])
+
+
+def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
+    _, pairs = match_nn(fa.descriptors, fb.descriptors, method=opts.matcher)
+    src, dst = _correspondences(fa, fb, pairs)
+    model, report = paper_consensus(src, dst, rng=rng, n_samples=opts.paper_samples, min_scale=opts.min_scale, max_scale=opts.max_scale)
+    details = {"samples": report.samples, "cluster_size": report.cluster_size}
+    if model is None:
+        return _Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches", details)
+    inl = model.residuals(src, dst) < opts.residual_threshold
+    return _Estimate(model, inl, src, dst, details=details)
+
+
+#: Alignment methods by name: ``f(a, b, features_a, features_b, options, rng) -> _Estimate``.
+METHODS: dict[str, Callable] = {"sift": _estimate_sift, "ransac": _estimate_ransac, "paper": _estimate_paper}
+
+
+def _evidence(inliers: int, min_samples: int) -> float:
+    """From 0 (a minimal sample explains itself) towards 1 with more inliers."""
+    return 1.0 - math.exp(-max(0, inliers - min_samples) / 6.0)
+
+
+def _confidence(inliers: int, v: Verification | None, min_samples: int) -> float:
+    if v is None or not math.isfinite(v.acceptance_index):
+        return 0.0
+    evidence = _evidence(inliers, min_samples)
+    acc = min(1.0, max(0.0, (v.acceptance_index - 0.5) / 0.5))
+    wall = 0.0 if not math.isfinite(v.wall_agreement) else v.wall_agreement
+    return float(evidence * math.sqrt(acc * wall))
+
+
+def align(
+    a: OccupancyGrid,
+    b: OccupancyGrid,
+    *,
+    method: str = "sift",
+    options: AlignOptions | None = None,
+    rng=0,
+    features: tuple[Features | None, Features | None] | None = None,
+    extractor: FeatureExtractor | None = None,
+    **overrides,
+) -> AlignResult:
+    """Find the transform that moves map ``b`` onto map ``a``.
+
+    Parameters
+    ----------
+    a, b : OccupancyGrid
+        The maps; ``a`` is the reference.
+    method : {"sift", "paper"}
+        See the module's documentation.
+    options : AlignOptions, optional
+        Settings; keyword ``overrides`` change single fields (``align(a, b, ratio=0.7)``).
+    rng : int or numpy.random.Generator
+        Seed of every random choice: the same seed gives the same result.
+    features : (Features or None, Features or None), optional
+        Precomputed features of a and b (reused when merging many maps).
+    extractor : FeatureExtractor, optional
+        Replaces the default SIFT extractor (e.g. with ORB, or another renderer).
+
+    Returns
+    -------
+    AlignResult
+        ``result.transform`` maps b's image pixels ``(x = column, y = row)`` to a's;
+        ``result.success`` is ``False`` when the alignment was declined.
+    """
+    if method not in METHODS:
+        raise GridMergeError(f"unknown alignment method {method!r} (use one of {', '.join(METHODS)})")
+    opts = replace(options or AlignOptions(), **overrides)
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    t0 = time.perf_counter()
+    ext = extractor or default_extractor(opts)
+    fa, fb = features if features is not None else (None, None)
+    fa = fa if fa is not None else ext(a)
+    fb = fb if fb is not None else ext(b)
+    # Work on the known part of each map only: real maps are often mostly unknown.
+    ca, oa = _crop_known(a, _CROP_MARGIN)
+    cb, ob = _crop_known(b, _CROP_MARGIN)
+    est = METHODS[method](ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen)
+    if est.transform is not None:
+        # Back from the crops' pixels to the whole maps' pixels.
+        to_full_a = SimilarityTransform(translation=oa)
+        from_full_b = SimilarityTransform(translation=-ob)
+        est.transform = type(est.transform)((to_full_a @ est.transform @ from_full_b).params)
+        est.src = est.src + ob
+        est.dst = est.dst + oa
+    n_inl = int(est.inliers.sum())
+    v = None
+    message = est.message
+    conf = 0.0
+    if est.transform is not None:
+        v = est.verification or verify(a, b, est.transform, tolerance=opts.wall_tolerance)
+        conf = _confidence(n_inl, v, est.transform.min_samples)
+        message = _decline_reason(n_inl, v, conf, opts)
+    success = est.transform is not None and not message
+    details = dict(est.details)
+    details["features_capped"] = bool(fa.capped or fb.capped)
+    inlier_xy = np.stack([est.src[est.inliers], est.dst[est.inliers]], axis=1) if n_inl else np.zeros((0, 2, 2))
+    return AlignResult(
+        success=success,
+        transform=est.transform if success else None,
+        candidate=est.transform,
+        metric_transform=pixel_to_metric(est.transform, b, a) if est.transform is not None else None,
+        confidence=conf,
+        acceptance_index=math.nan if v is None else v.acceptance_index,
+        inliers=n_inl,
+        matches=int(len(est.src)),
+        keypoints=(len(fa), len(fb)),
+        method=method,
+        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}",
+        elapsed_s=time.perf_counter() - t0,
+        verification=v,
+        inlier_xy=inlier_xy,
+        details=details,
+    )
+
+
+_CROP_MARGIN = 8
+
+
+def _crop_known(grid: OccupancyGrid, margin: int) -> tuple[OccupancyGrid, np.ndarray]:
+    """The bounding box of ``grid``'s known cells grown by ``margin``, and its offset (x, y)."""
+    rows = np.flatnonzero(grid.known.any(1))
+    cols = np.flatnonzero(grid.known.any(0))
+    if len(rows) == 0:
+        return grid, np.zeros(2)
+    y0, y1 = max(0, rows[0] - margin), min(grid.height, rows[-1] + 1 + margin)
+    x0, x1 = max(0, cols[0] - margin), min(grid.width, cols[-1] + 1 + margin)
+    if (y0, x0, y1, x1) == (0, 0, grid.height, grid.width):
+        return grid, np.zeros(2)
+    return grid.replace(data=grid.data[y0:y1, x0:x1]), np.array([x0, y0], dtype=float)
+
+
+def _shifted(f: Features, offset: np.ndarray) -> Features:
+    return f if not offset.any() else replace(f, xy=f.xy + offset)
+
+
+def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions) -> str:
+    if inliers < opts.min_inliers:
+        return f"declined: only {inliers} inlier matches (need {opts.min_inliers})"
+    if v.overlap_cells < opts.min_overlap_cells:
+        return f"declined: the maps share only {v.overlap_cells} known cells (need {opts.min_overlap_cells})"
+    if not math.isfinite(v.acceptance_index) or v.acceptance_index < opts.min_acceptance:
+        return f"declined: acceptance index {v.acceptance_index:.2f} below {opts.min_acceptance}"
+    if not math.isfinite(v.wall_agreement) or v.wall_agreement < opts.min_wall_agreement:
+        return f"declined: walls agree on {v.wall_agreement:.0%} of the overlap (need {opts.min_wall_agreement:.0%})"
+    if conf < opts.min_confidence:
+        return f"declined: confidence {conf:.2f} below {opts.min_confidence}"
+    return ""

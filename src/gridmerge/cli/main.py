@@ -1,0 +1,213 @@
+"""The ``gridmerge`` command: a thin layer that parses arguments and calls the library.
+
+Exit codes: 0 done, 1 declined (the maps could not be aligned confidently), 2 bad input
+or usage (one line on stderr; the traceback only with ``--debug``), 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from .. import __version__
+from ..align import METHODS, align
+from ..errors import GridMergeError, OutputError
+from ..fuse import FUSION_RULES
+from ..grid import DEFAULT_RESOLUTION
+from ..io import SAVE_MODES, load_map, save_map
+from ..io.map_server import YAML_SUFFIXES
+from ..merge import merge
+
+__all__ = ["main", "EXIT_OK", "EXIT_DECLINED", "EXIT_BAD_INPUT"]
+
+EXIT_OK = 0
+EXIT_DECLINED = 1
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+class _UsageError(GridMergeError):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line instead of usage + message
+        raise _UsageError(f"{message} (see '{self.prog} --help')")
+
+
+def _parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="show the traceback of errors")
+    common.add_argument(
+        "--resolution",
+        type=float,
+        default=DEFAULT_RESOLUTION,
+        help=f"resolution (m/cell) of maps given as bare images or .npy (default {DEFAULT_RESOLUTION})",
+    )
+    common.add_argument("--method", choices=sorted(METHODS), default="sift", help="alignment method (default: sift)")
+    common.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    common.add_argument("--json", action="store_true", help="print the result as one JSON object")
+
+    p = _Parser(prog="gridmerge", description="Merge occupancy grid maps of several robots.")
+    p.add_argument("--version", action="version", version=f"gridmerge {__version__}")
+    p.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    sub = p.add_subparsers(dest="command", parser_class=_Parser, metavar="COMMAND")
+
+    pa = sub.add_parser(
+        "align",
+        parents=[common],
+        help="find the transform from map B to map A",
+        description="Find the transform that moves map B onto map A. Exit 0 aligned, 1 declined, 2 bad input.",
+    )
+    pa.add_argument("a", metavar="A", help="reference map (map_server .yaml, .pgm/.png, or .npy)")
+    pa.add_argument("b", metavar="B", help="map to align onto A")
+
+    pm = sub.add_parser(
+        "merge",
+        parents=[common],
+        help="merge maps into one map_server map",
+        description="Merge maps into the frame of the first. Exit 0 merged, 1 declined (no output written), 2 bad input.",
+    )
+    pm.add_argument("maps", nargs="+", metavar="MAP", help="two or more maps; the first is the reference")
+    pm.add_argument("-o", "--output", required=True, metavar="OUT.yaml", help="merged map (map_server YAML; the image is written beside it)")
+    pm.add_argument("--fusion", choices=FUSION_RULES, default="average", help="cell fusion rule (default: average, the paper's eq. 9)")
+    pm.add_argument("--save-mode", choices=SAVE_MODES, default="trinary", help="image mode of the output (default: trinary, as map_saver)")
+    pm.add_argument("--plot", metavar="PNG", help="also write a picture of the matches and the merged map")
+    pm.add_argument("--force", action="store_true", help="overwrite existing output files")
+    return p
+
+
+def _same_file(p: Path, q: Path) -> bool:
+    try:
+        return p.resolve() == q.resolve() or (p.exists() and q.exists() and os.path.samefile(p, q))
+    except OSError:
+        return False
+
+
+def _input_files(paths: Sequence[str]) -> list[Path]:
+    """The input paths and, for map_server YAMLs, the images they name."""
+    import yaml
+
+    files = []
+    for s in paths:
+        p = Path(s)
+        files.append(p)
+        if p.suffix.lower() in YAML_SUFFIXES and p.is_file():
+            try:
+                doc = yaml.safe_load(p.read_text(errors="replace"))
+                if isinstance(doc, dict) and isinstance(doc.get("image"), str):
+                    img = Path(doc["image"])
+                    files.append(img if img.is_absolute() else p.parent / img)
+            except (yaml.YAMLError, OSError, ValueError):
+                pass  # load_map reports a broken YAML with a proper message
+    return files
+
+
+def _check_output(path: Path, inputs: list[Path], force: bool, what: str) -> None:
+    if not path.parent.is_dir():
+        raise OutputError(f"{what} folder does not exist: {path.parent}")
+    for q in inputs:
+        if _same_file(path, q):
+            raise OutputError(f"{what} {path} is one of the inputs; choose another name")
+    if path.exists() and not force:
+        raise OutputError(f"{what} {path} exists; use --force to overwrite it")
+
+
+def _load_all(paths: Sequence[str], resolution: float):
+    return [load_map(p, resolution=resolution) for p in paths]
+
+
+def _print_json(obj) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
+
+
+def _cmd_align(args) -> int:
+    a, b = _load_all([args.a, args.b], args.resolution)
+    r = align(a, b, method=args.method, rng=args.seed)
+    if args.json:
+        _print_json(r.to_dict())
+    elif r.success:
+        t = r.transform
+        m = r.metric or {}
+        print(f"aligned: rotation {r.rotation_deg:.3f} deg, scale {r.scale:.5f}, translation ({t.translation[0]:.2f}, {t.translation[1]:.2f}) px")
+        print(f"metric (B's frame in A's): x {m['x']:.3f} m, y {m['y']:.3f} m, yaw {m['yaw']:.5f} rad, scale {m['scale']:.5f}")
+        print(f"confidence {r.confidence:.2f}, acceptance index {r.acceptance_index:.3f}, {r.inliers} inliers of {r.matches} matches, {r.elapsed_s:.2f} s")
+    else:
+        print(f"not aligned: {r.message}")
+    return EXIT_OK if r.success else EXIT_DECLINED
+
+
+def _cmd_merge(args) -> int:
+    if len(args.maps) < 2:
+        raise _UsageError("merge needs at least two maps")
+    out = Path(args.output)
+    if out.suffix.lower() not in YAML_SUFFIXES:
+        raise _UsageError(f"the output must be a map_server .yaml file, got {out}")
+    inputs = _input_files(args.maps)
+    _check_output(out, inputs, args.force, "output")
+    _check_output(out.with_suffix(".pgm"), inputs, args.force, "output image")
+    if args.plot:
+        from ..plot import require_matplotlib
+
+        require_matplotlib()
+        _check_output(Path(args.plot), inputs, args.force, "plot")
+    maps = _load_all(args.maps, args.resolution)
+    result = merge(maps, method=args.method, fusion=args.fusion, rng=args.seed)
+    if result.success:
+        save_map(result.grid, out, mode=args.save_mode)  # type: ignore[arg-type]
+        if args.plot:
+            from ..plot import plot_merge, save_plot
+
+            # The picture shows the first placed map against the map it was aligned to.
+            k = next(i for i, parent in enumerate(result.parents) if parent is not None)
+            png = plot_merge(maps[result.parents[k]], maps[k], result.alignments[k], result.grid)  # type: ignore[arg-type, index]
+            save_plot(png, args.plot)
+    if args.json:
+        d = result.to_dict()
+        d["output"] = str(out) if result.success else None
+        _print_json(d)
+    elif result.success:
+        print(f"{result.message}; wrote {out}" + (f" and {args.plot}" if args.plot else ""))
+        for name, t, al in zip(result.names, result.transforms, result.alignments):
+            if t is not None and al is not None:
+                print(f"  {name}: rotation {al.rotation_deg:.3f} deg, scale {al.scale:.5f}, confidence {al.confidence:.2f}")
+    else:
+        print(f"not merged: {result.message}")
+    return EXIT_OK if result.success else EXIT_DECLINED
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    try:
+        args = _parser().parse_args(argv)
+        if args.command is None:
+            raise _UsageError("a command is needed: align or merge")
+        return _cmd_align(args) if args.command == "align" else _cmd_merge(args)
+    except KeyboardInterrupt:
+        print("gridmerge: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except SystemExit as exc:  # --help and --version
+        return int(exc.code or 0) if isinstance(exc.code, int) else 0
+    except Exception as exc:  # noqa: BLE001 - every error ends as one line
+        if debug:
+            raise
+        if isinstance(exc, GridMergeError):
+            msg = str(exc)
+        elif isinstance(exc, MemoryError):
+            msg = "out of memory (see docs/limits.md)"
+        elif isinstance(exc, OSError):
+            msg = f"{exc.strerror or exc}" + (f": {exc.filename}" if getattr(exc, "filename", None) else "")
+        else:
+            msg = f"unexpected {type(exc).__name__}: {exc} (run with --debug for the traceback)"
+        print(f"gridmerge: error: {' '.join(msg.split())}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

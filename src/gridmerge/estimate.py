@@ -1,0 +1,401 @@
+"""Robust estimation of a transform from noisy correspondences (the paper's section III.C).
+
+Two estimators:
+
+* :func:`ransac`: RANSAC with MSAC scoring (truncated squared residuals) and a local
+  least-squares optimisation of every new best model (LO-RANSAC), for any model class
+  that satisfies :class:`Model`;
+* :func:`paper_consensus`: the paper's estimator. Random 3-correspondence samples each
+  give the 5-parameter transform of eq. (8) from 6 linear equations; the answer is the
+  mean of the largest cluster of similar parameter vectors. No RANSAC, no SVD.
+
+Both take an explicit ``rng`` (seed or ``numpy.random.Generator``).
+
+Examples
+--------
+>>> import numpy as np
+>>> from gridmerge.transforms import SimilarityTransform
+>>> rng = np.random.default_rng(1)
+>>> truth = SimilarityTransform(rotation=0.3, scale=1.2, translation=(5, -7))
+>>> src = rng.uniform(0, 500, (100, 2))
+>>> dst = truth(src)
+>>> dst[:40] = rng.uniform(0, 500, (40, 2))            # 40 % outliers
+>>> model, inliers = ransac((src, dst), SimilarityTransform, 2, 2.0, rng=0)
+>>> int(inliers.sum()), round(float(model.rotation), 6), round(float(model.scale), 6)
+(60, 0.3, 1.2)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from .transforms import ScaledRotationTransform
+
+__all__ = ["Model", "ransac", "paper_consensus", "ConsensusReport", "Hypothesis", "similarity_hypotheses"]
+
+
+class Model(Protocol):
+    """What :func:`ransac` needs of a model class."""
+
+    @classmethod
+    def from_estimate(cls, src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None): ...
+
+    def residuals(self, src: np.ndarray, dst: np.ndarray) -> np.ndarray: ...
+
+
+def _rng(rng) -> np.random.Generator:
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+def _trials_needed(inlier_ratio: float, min_samples: int, probability: float) -> float:
+    if inlier_ratio <= 0:
+        return math.inf
+    good = inlier_ratio**min_samples
+    if good >= 1.0:
+        return 0
+    return math.log(1.0 - probability) / math.log(1.0 - good)
+
+
+def ransac(
+    data: tuple[np.ndarray, np.ndarray],
+    model_class,
+    min_samples: int,
+    residual_threshold: float,
+    *,
+    rng=None,
+    max_trials: int = 2000,
+    stop_probability: float = 0.999,
+    is_model_valid: Callable[[object], bool] | None = None,
+    local_iterations: int = 4,
+):
+    """Fit ``model_class`` to ``(src, dst)`` correspondences robustly.
+
+    Parameters
+    ----------
+    data : (src, dst)
+        Two ``(N, 2)`` float arrays of corresponding points.
+    model_class : type
+        A class with ``from_estimate(src, dst, weights=None)`` returning a model or a falsy
+        failure, and ``model.residuals(src, dst)``.
+    min_samples : int
+        Correspondences per random sample.
+    residual_threshold : float
+        Largest residual of an inlier (destination units).
+    rng : int or numpy.random.Generator
+        Seed of every random choice.
+    max_trials : int
+        Upper bound of random samples.
+    stop_probability : float
+        Stop once a better model would have been found with this probability.
+    is_model_valid : callable, optional
+        ``is_model_valid(model) -> bool`` rejects implausible models early.
+    local_iterations : int
+        Rounds of least-squares refitting on the inliers of each new best model.
+
+    Returns
+    -------
+    model : model_class or None
+        The best model refitted on all its inliers, ``None`` when nothing fitted.
+    inliers : (N,) bool array
+    """
+    src, dst = (np.asarray(a, dtype=float) for a in data)
+    n = len(src)
+    inliers = np.zeros(n, dtype=bool)
+    if n < min_samples:
+        return None, inliers
+    gen = _rng(rng)
+    t2 = float(residual_threshold) ** 2
+    best_model, best_cost, best_inliers = None, math.inf, inliers
+
+    def score(model):
+        r2 = model.residuals(src, dst) ** 2
+        return float(np.minimum(r2, t2).sum()), r2 < t2
+
+    def local_optimise(model, inl):
+        cost, _ = score(model)
+        for _ in range(local_iterations):
+            if inl.sum() < min_samples:
+                break
+            refit = model_class.from_estimate(src[inl], dst[inl])
+            if not refit or (is_model_valid is not None and not is_model_valid(refit)):
+                break
+            c, new_inl = score(refit)
+            if c >= cost - 1e-12:
+                break
+            model, cost, inl = refit, c, new_inl
+        return model, cost, inl
+
+    needed = float(max_trials)
+    trial = 0
+    while trial < min(needed, max_trials):
+        trial += 1
+        idx = gen.choice(n, min_samples, replace=False)
+        model = model_class.from_estimate(src[idx], dst[idx])
+        if not model or (is_model_valid is not None and not is_model_valid(model)):
+            continue
+        cost, inl = score(model)
+        if cost < best_cost:
+            model, cost, inl = local_optimise(model, inl)
+            best_model, best_cost, best_inliers = model, cost, inl
+            needed = _trials_needed(inl.mean(), min_samples, stop_probability)
+    return best_model, best_inliers
+
+
+@dataclass(frozen=True)
+class ConsensusReport:
+    """What :func:`paper_consensus` found.
+
+    Attributes
+    ----------
+    samples : int
+        Non-degenerate 3-point samples solved.
+    cluster_size : int
+        Samples in the winning cluster of similar parameters.
+    parameters : (5,) float array
+        ``(dx, dy, theta, sx, sy)``: the cluster mean.
+    """
+
+    samples: int
+    cluster_size: int
+    parameters: np.ndarray
+
+
+def paper_consensus(
+    src: np.ndarray,
+    dst: np.ndarray,
+    *,
+    rng=None,
+    n_samples: int = 4000,
+    angle_tol: float = math.radians(1.0),
+    scale_tol: float = 0.02,
+    position_tol: float = 2.0,
+    min_scale: float = 0.05,
+    max_scale: float = 20.0,
+):
+    """The paper's estimator: the mean of similar 3-point solutions of eq. (8).
+
+    Each random sample of three correspondences gives six linear equations, solved for
+    the affine matrix and read as ``(dx, dy, theta, sx, sy)``. Two samples are *similar*
+    when their angles differ by less than ``angle_tol``, their scales by less than
+    ``scale_tol`` (relative) and they map the centroid of ``src`` within ``position_tol``
+    destination pixels of each other (comparing ``dx, dy`` directly would make the
+    translation tolerance depend on the distance to the image corner). The sample with
+    the most similar samples wins; the parameters are the mean over its cluster
+    (a circular mean for the angle).
+
+    Parameters
+    ----------
+    src, dst : (N, 2) float arrays
+        Corresponding points (``dst ~ T(src)``).
+    rng : int or numpy.random.Generator
+    n_samples : int
+        Random 3-point samples to draw (all of them when fewer exist).
+    angle_tol, scale_tol, position_tol : float
+        The similarity tolerances above (radians, fraction, pixels).
+    min_scale, max_scale : float
+        Samples whose scales fall outside are discarded as degenerate.
+
+    Returns
+    -------
+    model : ScaledRotationTransform or None
+    report : ConsensusReport
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    n = len(src)
+    empty = ConsensusReport(0, 0, np.full(5, np.nan))
+    if n < 3:
+        return None, empty
+    gen = _rng(rng)
+    total = math.comb(n, 3)
+    if total <= n_samples:
+        tri = np.array([(i, j, k) for i in range(n) for j in range(i + 1, n) for k in range(j + 1, n)], dtype=int)
+    else:
+        draws = gen.integers(0, n, (3 * n_samples, 3))
+        distinct = (draws[:, 0] != draws[:, 1]) & (draws[:, 0] != draws[:, 2]) & (draws[:, 1] != draws[:, 2])
+        tri = draws[distinct][:n_samples]
+    # Each sample's six linear equations: [x y 1] m_row = x' and = y', for 3 points.
+    lhs = np.concatenate([src[tri], np.ones((len(tri), 3, 1))], axis=2)  # (K, 3, 3)
+    det = np.linalg.det(lhs)
+    spread = np.abs(src[tri] - src[tri].mean(1, keepdims=True)).max(axis=(1, 2))
+    ok = np.abs(det) > 1e-6 * np.maximum(spread, 1.0) ** 2
+    if not ok.any():
+        return None, empty
+    sol = np.linalg.solve(lhs[ok], dst[tri[ok]])  # (K, 3, 2): rows a, b, t of x' = a x + b y + t
+    a, b, c, d = sol[:, 0, 0], sol[:, 0, 1], sol[:, 1, 0], sol[:, 1, 1]  # m = [[a, c, tx], [b, d, ty]]
+    dx, dy = sol[:, 2, 0], sol[:, 2, 1]
+    # The paper's parametrisation read from each solved matrix (as _five_from_matrix does).
+    sx, sy = np.hypot(a, b), np.hypot(c, d)
+    t1, t2 = np.arctan2(b, a), np.arctan2(-c, d)
+    theta = np.arctan2(np.sin(t1) + np.sin(t2), np.cos(t1) + np.cos(t2))
+    keep = (a * d - b * c > 0) & (sx >= min_scale) & (sx <= max_scale) & (sy >= min_scale) & (sy <= max_scale)
+    if not keep.any():
+        return None, empty
+    dx, dy, theta, sx, sy = (v[keep] for v in (dx, dy, theta, sx, sy))
+    # Where each sample sends the centroid of src: a translation that does not depend on
+    # the distance to the image corner.
+    cx0, cy0 = src.mean(0)
+    cx = sx * np.cos(theta) * cx0 - sy * np.sin(theta) * cy0 + dx
+    cy = sx * np.sin(theta) * cx0 + sy * np.cos(theta) * cy0 + dy
+    p = np.stack([dx, dy, theta, sx, sy, cx, cy], axis=1)
+    tol = np.array([angle_tol, math.log1p(scale_tol), math.log1p(scale_tol), position_tol])
+
+    def similar_to(rows: np.ndarray) -> np.ndarray:
+        """(len(rows), len(p)) bool: which samples are similar to each of ``rows``."""
+        dth = np.abs(np.angle(np.exp(1j * (rows[:, 2][:, None] - p[:, 2][None, :]))))
+        dsx = np.abs(np.log(rows[:, 3][:, None] / p[:, 3][None, :]))
+        dsy = np.abs(np.log(rows[:, 4][:, None] / p[:, 4][None, :]))
+        dpos = np.hypot(rows[:, 5][:, None] - p[:, 5][None, :], rows[:, 6][:, None] - p[:, 6][None, :])
+        return (dth < tol[0]) & (dsx < tol[1]) & (dsy < tol[2]) & (dpos < tol[3])
+
+    # Count similar samples in blocks, so that memory stays small for many samples.
+    counts = np.concatenate([similar_to(p[i : i + 512]).sum(1) for i in range(0, len(p), 512)])
+    best = int(np.argmax(counts))
+    cluster = p[similar_to(p[best : best + 1])[0]]
+    theta = math.atan2(np.sin(cluster[:, 2]).mean(), np.cos(cluster[:, 2]).mean())
+    mean = np.array([cluster[:, 0].mean(), cluster[:, 1].mean(), theta, cluster[:, 3].mean(), cluster[:, 4].mean()])
+    model = ScaledRotationTransform.from_parameters(*mean)
+    return model, ConsensusReport(len(p), int(counts[best]), mean)
+
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """A candidate similarity transform and the correspondences that support it.
+
+    Attributes
+    ----------
+    transform : SimilarityTransform
+    inliers : (N,) bool array
+        Correspondences within the threshold of ``transform``.
+    support : int
+        Distinct keypoints among the inliers (the smaller of the two maps' counts), so
+        that one keypoint matched several times counts once.
+    """
+
+    transform: SimilarityTransform
+    inliers: np.ndarray
+    support: int
+
+
+def _support(src: np.ndarray, dst: np.ndarray, inliers: np.ndarray) -> int:
+    if not inliers.any():
+        return 0
+    return int(min(len(np.unique(src[inliers], axis=0)), len(np.unique(dst[inliers], axis=0))))
+
+
+def similarity_hypotheses(
+    src: np.ndarray,
+    dst: np.ndarray,
+    angle: np.ndarray,
+    scale: np.ndarray,
+    *,
+    threshold: float,
+    spread: float = 0.06,
+    max_hypotheses: int = 6,
+    min_scale: float = 0.2,
+    max_scale: float = 5.0,
+    local_iterations: int = 6,
+    block: int = 256,
+):
+    """Ranked, distinct similarity hypotheses from oriented keypoint correspondences.
+
+    A keypoint match carries the keypoints' orientations and sizes, so a single match
+    proposes a whole similarity transform (one-point RANSAC, evaluated exhaustively):
+    rotation ``angle[i]``, scale ``scale[i]``, and the translation that maps ``src[i]`` onto
+    ``dst[i]``. Each proposal is scored by the correspondences it explains within
+    ``threshold + spread * distance`` (orientations are only good to a few degrees, so the
+    tolerance grows with the distance from the proposing match). The best proposals are
+    then refitted by least squares on their inliers with a tightening threshold, and
+    proposals explained by an already accepted hypothesis are skipped.
+
+    Parameters
+    ----------
+    src, dst : (N, 2) float arrays
+        Corresponding points, ``dst ~ T(src)``.
+    angle : (N,) float array
+        Rotation proposed by each match, radians.
+    scale : (N,) float array
+        Scale proposed by each match.
+    threshold : float
+        Inlier distance in destination units.
+    spread : float
+        Growth of the proposal tolerance with distance.
+    max_hypotheses : int
+    min_scale, max_scale : float
+        Proposals outside this scale range are ignored.
+    local_iterations : int
+        Least-squares refits per hypothesis at most.
+    block : int
+        Proposals evaluated at once (bounds memory to ``block * N`` values).
+
+    Returns
+    -------
+    list of Hypothesis
+        Best first (by support).
+    """
+    from .transforms import SimilarityTransform
+
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    n = len(src)
+    if n < 2:
+        return []
+    ok = np.isfinite(angle) & np.isfinite(scale) & (scale >= min_scale) & (scale <= max_scale)
+    cand = np.flatnonzero(ok)
+    if len(cand) == 0:
+        return []
+    cos, sin = np.cos(angle[cand]) * scale[cand], np.sin(angle[cand]) * scale[cand]
+    tx = dst[cand, 0] - (cos * src[cand, 0] - sin * src[cand, 1])
+    ty = dst[cand, 1] - (sin * src[cand, 0] + cos * src[cand, 1])
+    score = np.zeros(len(cand))
+    for i in range(0, len(cand), block):
+        sl = slice(i, i + block)
+        px = cos[sl, None] * src[None, :, 0] - sin[sl, None] * src[None, :, 1] + tx[sl, None]
+        py = sin[sl, None] * src[None, :, 0] + cos[sl, None] * src[None, :, 1] + ty[sl, None]
+        err = np.hypot(px - dst[None, :, 0], py - dst[None, :, 1])
+        dist = np.hypot(src[None, :, 0] - src[cand[sl], None, 0], src[None, :, 1] - src[cand[sl], None, 1])
+        score[sl] = (err < threshold + spread * scale[cand[sl], None] * dist).sum(1)
+    order = np.argsort(-score, kind="stable")
+    hypotheses: list[Hypothesis] = []
+    explained = np.zeros(n, dtype=bool)
+    # Two hypotheses are the same when they place the source points' bounding box
+    # within a few thresholds of each other.
+    lo, hi = src.min(0), src.max(0)
+    box = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    attempts = 0
+    for k in order:
+        if len(hypotheses) >= max_hypotheses or score[k] < 2 or attempts >= 4 * max_hypotheses:
+            break
+        i = cand[k]
+        if explained[i]:
+            continue
+        model = SimilarityTransform(rotation=float(angle[i]), scale=float(scale[i]), translation=(tx[k], ty[k]))
+        r = model.residuals(src, dst)
+        d = np.hypot(*(src - src[i]).T)
+        inl = r < threshold + spread * scale[i] * d
+        # Tighten from the proposal's tolerance to the plain threshold while refitting.
+        for it in range(local_iterations):
+            if inl.sum() < 2:
+                break
+            refit = SimilarityTransform.from_estimate(src[inl], dst[inl])
+            if not refit or not (min_scale <= refit.scale <= max_scale):
+                break
+            model = refit
+            factor = max(1.0, 3.0 - it)
+            inl = model.residuals(src, dst) < threshold * factor
+        inl = model.residuals(src, dst) < threshold
+        attempts += 1
+        explained[i] = True
+        if inl.sum() < 2:
+            continue
+        explained |= inl
+        if any(np.hypot(*(h.transform(box) - model(box)).T).max() < 3 * threshold for h in hypotheses):
+            continue
+        hypotheses.append(Hypothesis(model, inl, _support(src, dst, inl)))
+    hypotheses.sort(key=lambda h: -h.support)
+    return hypotheses

@@ -1,0 +1,266 @@
+"""The occupancy grid type and the coordinate conventions of gridmerge.
+
+Conventions
+-----------
+*Image pixels* are ``(x, y) = (column, row)`` with the origin at the **centre** of the
+top-left cell of the image as stored in a file (row 0 is the top row). This is OpenCV's
+convention, and the one of every 2x3 ``matrix`` that gridmerge returns.
+
+*Metric frames* follow ROS: ``x, y`` in metres, yaw in radians. A map's ``origin`` is the
+pose ``(x, y, yaw)`` of the lower-left **corner** of the lower-left cell, as in ROS
+map_server and ``nav_msgs/OccupancyGrid``. The centre of the cell at pixel ``(x, y)`` of a
+grid of height ``H`` therefore lies, in the map's own axes, at
+``((x + 0.5) * resolution, (H - 0.5 - y) * resolution)``, which is then rotated by ``yaw``
+and shifted by ``(origin_x, origin_y)``.
+
+*Cell values* are the probability that the cell is occupied, in ``[0, 1]``; unknown cells
+are ``NaN``. ROS's int8 values map as ``v -> v / 100`` and ``-1 -> NaN``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from .errors import MapFormatError
+
+__all__ = [
+    "OccupancyGrid",
+    "DEFAULT_RESOLUTION",
+    "OCCUPIED_THRESHOLD",
+    "FREE_THRESHOLD",
+]
+
+#: Resolution (m/cell) given to maps whose file does not say (bare images, ``.npy``).
+DEFAULT_RESOLUTION = 0.05
+#: map_server's default ``occupied_thresh``: a cell is occupied above this probability.
+OCCUPIED_THRESHOLD = 0.65
+#: map_server's default ``free_thresh``: a cell is free below this probability.
+FREE_THRESHOLD = 0.196
+
+
+def _check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in origin)
+    except (TypeError, ValueError):
+        raise MapFormatError(f"origin must be three numbers [x, y, yaw], got {origin!r}", field="origin") from None
+    if len(values) != 3:
+        raise MapFormatError(f"origin must be three numbers [x, y, yaw], got {len(values)}", field="origin")
+    if not all(math.isfinite(v) for v in values):
+        raise MapFormatError(f"origin must be finite, got {list(values)}", field="origin")
+    return values  # type: ignore[return-value]
+
+
+@dataclass(frozen=True, eq=False)
+class OccupancyGrid:
+    """A 2-D occupancy grid map with its metric frame.
+
+    Parameters
+    ----------
+    data : (H, W) array_like
+        Occupancy probability of each cell in ``[0, 1]``; ``NaN`` where unknown. Row 0 is
+        the top row of the map's image (the cells farthest along the map's +y axis). The
+        array is copied to ``float32`` and made read-only; the caller's array is never
+        modified.
+    resolution : float
+        Cell size in metres per cell (> 0).
+    origin : (3,) sequence of float
+        ``(x, y, yaw)`` of the lower-left corner of the lower-left cell in the map frame,
+        metres and radians, as in ROS.
+    name : str, optional
+        A label used in reports (usually the path the map was read from).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gridmerge import OccupancyGrid
+    >>> g = OccupancyGrid(np.array([[1.0, np.nan], [0.0, 0.0]]), resolution=0.1)
+    >>> g.shape
+    (2, 2)
+    >>> g.to_ros().tolist()  # ROS order: bottom row first
+    [0, 0, 100, -1]
+    >>> g.pixel_to_metric([[0, 0]]).round(3).tolist()  # centre of the top-left cell
+    [[0.05, 0.15]]
+    """
+
+    data: np.ndarray
+    resolution: float = DEFAULT_RESOLUTION
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str | None = field(default=None, compare=False)
+
+    def __post_init__(self) -> None:
+        arr = np.array(self.data, dtype=np.float32, copy=True)
+        if arr.ndim != 2:
+            raise MapFormatError(f"map data must be 2-D, got shape {arr.shape}", path=self.name, field="data")
+        if arr.size == 0:
+            raise MapFormatError("map is empty (0 cells)", path=self.name, field="data")
+        finite = np.isfinite(arr)
+        if np.isinf(arr).any():
+            raise MapFormatError("map data contains infinite values", path=self.name, field="data")
+        if finite.any():
+            lo = float(arr[finite].min())
+            hi = float(arr[finite].max())
+            if lo < 0.0 or hi > 1.0:
+                raise MapFormatError(
+                    f"cell values must be probabilities in [0, 1] (NaN = unknown), got [{lo}, {hi}]",
+                    path=self.name,
+                    field="data",
+                )
+        arr.flags.writeable = False
+        try:
+            res = float(self.resolution)
+        except (TypeError, ValueError):
+            raise MapFormatError(f"resolution must be a number, got {self.resolution!r}", path=self.name, field="resolution") from None
+        if not math.isfinite(res) or res <= 0:
+            raise MapFormatError(f"resolution must be a finite number > 0, got {self.resolution!r}", path=self.name, field="resolution")
+        try:
+            origin = _check_origin(self.origin)
+        except MapFormatError as exc:
+            raise MapFormatError(str(exc).split(": ", 1)[-1], path=self.name, field="origin") from None
+        object.__setattr__(self, "data", arr)
+        object.__setattr__(self, "resolution", res)
+        object.__setattr__(self, "origin", origin)
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)``: rows and columns."""
+        return self.data.shape  # type: ignore[return-value]
+
+    @property
+    def height(self) -> int:
+        return int(self.data.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.data.shape[1])
+
+    @property
+    def known(self) -> np.ndarray:
+        """(H, W) bool array: cells whose occupancy is known."""
+        return ~np.isnan(self.data)
+
+    def occupied(self, threshold: float = OCCUPIED_THRESHOLD) -> np.ndarray:
+        """(H, W) bool array: cells with occupancy probability above ``threshold``."""
+        with np.errstate(invalid="ignore"):
+            return self.data > threshold
+
+    def free(self, threshold: float = FREE_THRESHOLD) -> np.ndarray:
+        """(H, W) bool array: cells with occupancy probability below ``threshold``."""
+        with np.errstate(invalid="ignore"):
+            return self.data < threshold
+
+    def replace(self, **changes) -> "OccupancyGrid":
+        """A copy with some fields changed (``data``, ``resolution``, ``origin``, ``name``)."""
+        kwargs = dict(data=self.data, resolution=self.resolution, origin=self.origin, name=self.name)
+        kwargs.update(changes)
+        return OccupancyGrid(**kwargs)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, OccupancyGrid):
+            return NotImplemented
+        return (
+            self.shape == other.shape
+            and self.resolution == other.resolution
+            and self.origin == other.origin
+            and bool(np.array_equal(self.data, other.data, equal_nan=True))
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        known = self.known
+        n = known.size
+        return (
+            f"OccupancyGrid({self.height}x{self.width}, resolution={self.resolution:g}, "
+            f"origin={tuple(round(v, 6) for v in self.origin)}, known={known.sum() / n:.0%}"
+            + (f", name={self.name!r}" if self.name else "")
+            + ")"
+        )
+
+    # -------------------------------------------------------------- ROS values
+    @classmethod
+    def from_ros(
+        cls,
+        values: Sequence[int] | np.ndarray,
+        width: int,
+        height: int,
+        resolution: float,
+        origin: Sequence[float] = (0.0, 0.0, 0.0),
+        name: str | None = None,
+    ) -> "OccupancyGrid":
+        """Build a grid from ``nav_msgs/OccupancyGrid`` data.
+
+        Parameters
+        ----------
+        values : (width * height,) int array
+            Row-major cell values starting at the lower-left cell: ``-1`` unknown,
+            ``0..100`` occupancy in percent.
+        width, height : int
+            ``info.width`` and ``info.height``.
+        resolution : float
+            ``info.resolution``.
+        origin : (3,) sequence of float
+            ``(x, y, yaw)`` of ``info.origin``.
+        """
+        vals = np.asarray(values)
+        if vals.ndim != 1 or vals.size != int(width) * int(height):
+            raise MapFormatError(
+                f"data has {vals.size} cells but width x height = {int(width)} x {int(height)} = {int(width) * int(height)}",
+                path=name,
+                field="data",
+            )
+        v = vals.astype(np.int16, copy=False).reshape(int(height), int(width))[::-1]
+        prob = np.where((v >= 0) & (v <= 100), v.astype(np.float32) / 100.0, np.nan)
+        return cls(prob, resolution=resolution, origin=tuple(origin), name=name)  # type: ignore[arg-type]
+
+    def to_ros(self) -> np.ndarray:
+        """``nav_msgs/OccupancyGrid`` data: ``(W * H,)`` int8, bottom row first, ``-1`` unknown."""
+        pct = np.rint(np.nan_to_num(self.data, nan=0.0) * 100.0).astype(np.int8)
+        pct[~self.known] = -1
+        return np.ascontiguousarray(pct[::-1]).reshape(-1)
+
+    # ------------------------------------------------------------ coordinates
+    def pixel_to_metric_matrix(self) -> np.ndarray:
+        """(3, 3) float array mapping homogeneous pixels ``(x, y, 1)`` to metres in the map frame."""
+        r = self.resolution
+        local = np.array([[r, 0.0, 0.5 * r], [0.0, -r, (self.height - 0.5) * r], [0.0, 0.0, 1.0]])
+        ox, oy, yaw = self.origin
+        c, s = math.cos(yaw), math.sin(yaw)
+        pose = np.array([[c, -s, ox], [s, c, oy], [0.0, 0.0, 1.0]])
+        return pose @ local
+
+    def metric_to_pixel_matrix(self) -> np.ndarray:
+        """(3, 3) float array, the inverse of :meth:`pixel_to_metric_matrix`."""
+        return np.linalg.inv(self.pixel_to_metric_matrix())
+
+    def pixel_to_metric(self, xy: np.ndarray | Sequence[Sequence[float]]) -> np.ndarray:
+        """Map ``(N, 2)`` image pixels ``(x = column, y = row)`` to ``(N, 2)`` metres."""
+        return _apply(self.pixel_to_metric_matrix(), xy)
+
+    def metric_to_pixel(self, xy: np.ndarray | Sequence[Sequence[float]]) -> np.ndarray:
+        """Map ``(N, 2)`` metres in the map frame to ``(N, 2)`` image pixels."""
+        return _apply(self.metric_to_pixel_matrix(), xy)
+
+    def corners(self) -> np.ndarray:
+        """(4, 2) float array: pixel coordinates of the image's outer corners (cell edges)."""
+        h, w = self.shape
+        return np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]])
+
+    # --------------------------------------------------------------- display
+    def render(self, unknown: int = 127) -> np.ndarray:
+        """(H, W) uint8 image: free white (255), occupied black (0), unknown grey.
+
+        Intermediate probabilities are shaded linearly, ``(1 - p) * 255``.
+        """
+        img = np.rint((1.0 - np.nan_to_num(self.data, nan=0.0)) * 255.0).astype(np.uint8)
+        img[~self.known] = unknown
+        return img
+
+
+def _apply(matrix: np.ndarray, xy) -> np.ndarray:
+    pts = np.asarray(xy, dtype=float).reshape(-1, 2)
+    return pts @ matrix[:2, :2].T + matrix[:2, 2]

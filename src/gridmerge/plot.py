@@ -1,0 +1,104 @@
+"""Pictures of an alignment and a merge (needs the ``plot`` extra: matplotlib).
+
+:func:`plot_merge` draws the paper's Fig. 3 (matched keypoints between the two maps) above
+its Fig. 2 (the merged map) and returns the PNG bytes; :func:`save_plot` writes them
+atomically.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from .align import AlignResult
+from .errors import GridMergeError
+from .grid import OccupancyGrid
+
+__all__ = ["require_matplotlib", "plot_merge", "save_plot"]
+
+
+def require_matplotlib():
+    """Import matplotlib with a headless backend, or raise a one-line GridMergeError."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg", force=True)
+        import matplotlib.pyplot as plt  # noqa: F401
+    except ImportError:
+        raise GridMergeError("pictures need matplotlib: pip install 'gridmerge[plot]'") from None
+    return plt
+
+
+def _side_by_side(a: np.ndarray, b: np.ndarray, gap: int = 10):
+    h = max(a.shape[0], b.shape[0])
+    canvas = np.full((h, a.shape[1] + gap + b.shape[1]), 255, dtype=np.uint8)
+    canvas[: a.shape[0], : a.shape[1]] = a
+    canvas[: b.shape[0], a.shape[1] + gap :] = b
+    return canvas, a.shape[1] + gap
+
+
+def plot_merge(
+    a: OccupancyGrid,
+    b: OccupancyGrid,
+    alignment: AlignResult,
+    merged: OccupancyGrid | None = None,
+    *,
+    max_lines: int = 150,
+    dpi: int = 110,
+) -> bytes:
+    """PNG bytes: matches between ``a`` and ``b`` (top) and the merged map (bottom).
+
+    Parameters
+    ----------
+    a, b : OccupancyGrid
+    alignment : AlignResult
+        Its inlier correspondences are drawn as lines (at most ``max_lines``).
+    merged : OccupancyGrid, optional
+        Drawn below when given.
+    """
+    plt = require_matplotlib()
+    rows = 2 if merged is not None else 1
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 5.5 * rows), squeeze=False)
+    img, off = _side_by_side(a.render(), b.render())
+    ax = axes[0, 0]
+    ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+    pts = alignment.inlier_xy
+    if len(pts) > max_lines:
+        pts = pts[np.linspace(0, len(pts) - 1, max_lines).astype(int)]
+    for (xb, yb), (xa, ya) in pts:
+        ax.plot([xa, xb + off], [ya, yb], "-", color="tab:red", lw=0.6, alpha=0.7)
+    if len(pts):
+        ax.plot(pts[:, 1, 0], pts[:, 1, 1], ".", color="tab:blue", ms=3)
+        ax.plot(pts[:, 0, 0] + off, pts[:, 0, 1], ".", color="tab:blue", ms=3)
+    state = "aligned" if alignment.success else "declined"
+    ax.set_title(
+        f"{a.name or 'map a'}  |  {b.name or 'map b'}: {alignment.inliers} inlier matches, {state}, "
+        f"confidence {alignment.confidence:.2f}",
+        fontsize=9,
+    )
+    ax.set_axis_off()
+    if merged is not None:
+        ax = axes[1, 0]
+        ax.imshow(merged.render(), cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        t = alignment.transform
+        sub = ""
+        if t is not None:
+            sub = f": rotation {np.degrees(t.rotation):.2f} deg, scale {t.scale:.4f}, translation ({t.translation[0]:.1f}, {t.translation[1]:.1f}) px"
+        ax.set_title("merged map" + sub, fontsize=9)
+        ax.set_axis_off()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def save_plot(png: bytes, path) -> Path:
+    """Write PNG bytes atomically."""
+    from .io.atomic import atomic_write
+
+    p = Path(path)
+    atomic_write(p, png)
+    return p
