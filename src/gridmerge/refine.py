@@ -64,10 +64,19 @@ def _field(grid: OccupancyGrid, sigma: float):
 
 
 def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    mx = np.ascontiguousarray(xy[:, 0], dtype=np.float32).reshape(-1, 1)
-    my = np.ascontiguousarray(xy[:, 1], dtype=np.float32).reshape(-1, 1)
-    out = cv2.remap(img, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    return out.reshape(-1)
+    """Bilinear values of ``img`` at ``(N, 2)`` points (0 outside)."""
+    n = len(xy)
+    # remap wants maps shaped like an image of fewer than 32767 rows: fold the points.
+    width = 1024
+    rows = max(1, -(-n // width))
+    mx = np.full(rows * width, -10.0, dtype=np.float32)
+    my = np.full(rows * width, -10.0, dtype=np.float32)
+    mx[:n], my[:n] = xy[:, 0], xy[:, 1]
+    out = cv2.remap(
+        img, mx.reshape(rows, width), my.reshape(rows, width), interpolation=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
+    )
+    return out.reshape(-1)[:n]
 
 
 def _corner_shift(t0: np.ndarray, t1: np.ndarray, shape) -> float:

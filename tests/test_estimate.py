@@ -1,0 +1,99 @@
+import math
+
+import numpy as np
+import pytest
+
+from gridmerge.estimate import paper_consensus, ransac, similarity_hypotheses
+from gridmerge.transforms import AffineTransform, ScaledRotationTransform, SimilarityTransform, corner_error
+
+
+def _data(seed, n=120, outliers=0.5, noise=0.3):
+    rng = np.random.default_rng(seed)
+    truth = SimilarityTransform(rotation=math.radians(30), scale=0.95, translation=(-86, -36))
+    src = rng.uniform(0, 600, (n, 2))
+    dst = truth(src) + rng.normal(0, noise, (n, 2))
+    bad = rng.random(n) < outliers
+    dst[bad] = rng.uniform(-200, 600, (bad.sum(), 2))
+    return truth, src, dst, ~bad
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ransac_finds_the_inliers_among_half_outliers(seed):
+    truth, src, dst, good = _data(seed)
+    model, inl = ransac((src, dst), SimilarityTransform, 2, 2.0, rng=seed)
+    assert isinstance(model, SimilarityTransform)
+    assert corner_error(model, truth, (600, 600)) < 0.5
+    assert (inl == good).mean() > 0.97
+
+
+def test_ransac_is_reproducible_for_a_seed():
+    _, src, dst, _ = _data(7, outliers=0.7)
+    m1, i1 = ransac((src, dst), SimilarityTransform, 2, 2.0, rng=11)
+    m2, i2 = ransac((src, dst), SimilarityTransform, 2, 2.0, rng=11)
+    assert m1 == m2 and (i1 == i2).all()
+
+
+def test_ransac_with_too_few_points_returns_none():
+    model, inl = ransac((np.zeros((1, 2)), np.zeros((1, 2))), SimilarityTransform, 2, 1.0, rng=0)
+    assert model is None and inl.tolist() == [False]
+
+
+def test_ransac_respects_model_validity():
+    _, src, dst, _ = _data(1)
+    model, _ = ransac((src, dst), SimilarityTransform, 2, 2.0, rng=0, is_model_valid=lambda m: m.scale > 5)
+    assert model is None or model.scale > 5
+
+
+def test_ransac_works_for_other_models():
+    rng = np.random.default_rng(0)
+    truth = AffineTransform([[1.1, 0.2, 5], [-0.1, 0.9, 3]])
+    src = rng.uniform(0, 300, (60, 2))
+    dst = truth(src)
+    dst[:20] += rng.uniform(50, 100, (20, 2))
+    model, inl = ransac((src, dst), AffineTransform, 3, 1.0, rng=0)
+    np.testing.assert_allclose(model.params, truth.params, atol=1e-6)
+    assert inl.sum() == 40
+
+
+def test_paper_consensus_recovers_the_five_parameters():
+    rng = np.random.default_rng(2)
+    truth = ScaledRotationTransform.from_parameters(-86, -36, math.radians(30), 0.95, 0.95)
+    src = rng.uniform(0, 500, (80, 2))
+    dst = truth(src) + rng.normal(0, 0.2, src.shape)
+    dst[:30] = rng.uniform(0, 500, (30, 2))  # wrong matches
+    model, report = paper_consensus(src, dst, rng=0)
+    dx, dy, th, sx, sy = model.parameters
+    assert abs(math.degrees(th) - 30) < 0.1
+    assert abs(dx + 86) < 0.5 and abs(dy + 36) < 0.5
+    assert abs(sx - 0.95) < 2e-3 and abs(sy - 0.95) < 2e-3
+    assert report.cluster_size >= 10 and report.samples > report.cluster_size
+
+
+def test_paper_consensus_sees_anisotropic_scale():
+    rng = np.random.default_rng(5)
+    truth = ScaledRotationTransform.from_parameters(12, -7, 0.4, 0.8, 1.2)
+    src = rng.uniform(0, 400, (40, 2))
+    model, _ = paper_consensus(src, truth(src), rng=0)
+    np.testing.assert_allclose(model.parameters, truth.parameters, atol=1e-6)
+
+
+def test_paper_consensus_needs_three_points():
+    model, report = paper_consensus(np.zeros((2, 2)), np.zeros((2, 2)), rng=0)
+    assert model is None and report.samples == 0
+
+
+def test_keypoint_hypotheses_from_single_matches():
+    truth, src, dst, good = _data(4, n=200, outliers=0.8, noise=0.3)
+    rng = np.random.default_rng(4)
+    # Orientation and scale of each match: right (with a few degrees of noise) for the
+    # inliers, random for the outliers.
+    angle = np.where(good, truth.rotation + rng.normal(0, math.radians(3), 200), rng.uniform(-math.pi, math.pi, 200))
+    scale = np.where(good, 0.95 * np.exp(rng.normal(0, 0.05, 200)), np.exp(rng.uniform(-1, 1, 200)))
+    hyps = similarity_hypotheses(src, dst, angle, scale, threshold=2.0)
+    best = hyps[0]
+    assert corner_error(best.transform, truth, (600, 600)) < 0.5
+    assert best.support >= 0.9 * good.sum()
+    assert all(h.support <= best.support for h in hyps)
+    # Hypotheses are distinct transforms.
+    for h in hyps[1:]:
+        assert corner_error(h.transform, best.transform, (600, 600)) > 1.0

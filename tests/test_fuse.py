@@ -1,0 +1,66 @@
+import math
+
+import numpy as np
+import pytest
+
+from gridmerge.fuse import fuse_values, warp_values
+
+N = np.nan
+A = np.array([[0.0, 1.0, 0.2, N, 0.9, N]], dtype=np.float32)
+B = np.array([[1.0, 1.0, N, 0.3, 0.8, N]], dtype=np.float32)
+
+
+def test_average_is_eq_9_cell_by_cell():
+    out = fuse_values([A, B], "average")
+    np.testing.assert_allclose(out[0, :5], [0.5, 1.0, 0.2, 0.3, 0.85], rtol=1e-6)
+    assert math.isnan(out[0, 5])
+
+
+def test_max_rule():
+    out = fuse_values([A, B], "max")
+    np.testing.assert_allclose(out[0, :5], [1.0, 1.0, 0.2, 0.3, 0.9], rtol=1e-6)
+    assert math.isnan(out[0, 5])
+
+
+def test_logodds_rule():
+    out = fuse_values([A, B], "logodds")
+    # 0.9 and 0.8: odds 9 and 4 multiply to 36.
+    assert math.isclose(out[0, 4], 36 / 37, rel_tol=1e-5)
+    # Certain evidence on both sides cancels.
+    assert math.isclose(out[0, 0], 0.5, rel_tol=1e-5)
+    assert out[0, 1] > 0.999
+    # Cells known to one map keep that map's value.
+    np.testing.assert_allclose(out[0, 2:4], [0.2, 0.3], rtol=1e-6)
+    assert math.isnan(out[0, 5])
+
+
+@pytest.mark.parametrize("rule", ["average", "logodds", "max"])
+def test_rules_are_symmetric_and_keep_unknown(rule):
+    np.testing.assert_array_equal(fuse_values([A, B], rule), fuse_values([B, A], rule))
+    out = fuse_values([A, B], rule)
+    assert np.isnan(out).tolist() == (np.isnan(A) & np.isnan(B)).tolist()
+
+
+def test_unknown_rule_is_an_error():
+    with pytest.raises(ValueError):
+        fuse_values([A], "median")
+
+
+def test_warp_identity_and_integer_shift():
+    rng = np.random.default_rng(0)
+    data = rng.random((20, 30)).astype(np.float32)
+    data[rng.random((20, 30)) < 0.3] = np.nan
+    same = warp_values(data, np.eye(3), data.shape)
+    np.testing.assert_array_equal(same, data)
+    shifted = warp_values(data, [[1, 0, 5], [0, 1, 2]], (22, 35), interpolation="nearest")
+    np.testing.assert_array_equal(shifted[2:, 5:], data)
+    assert np.isnan(shifted[:2]).all() and np.isnan(shifted[:, :5]).all()
+
+
+def test_warp_never_spreads_unknown_into_known_values():
+    data = np.array([[0.0, 0.0, N, N]] * 4, dtype=np.float32)
+    half = warp_values(data, [[1, 0, 0.5], [0, 1, 0]], (4, 4))
+    known = ~np.isnan(half)
+    # Every known value stays a true mix of known cells (0 here), never pulled by NaN.
+    assert (half[known] == 0).all()
+    assert known[:, 0].all() and not known[:, 3].any()

@@ -1,0 +1,58 @@
+import numpy as np
+import pytest
+
+from gridmerge.matching import knn, match_mnn, match_nn, match_smnn, match_snn
+
+RNG = np.random.default_rng(0)
+D1 = RNG.random((300, 128), dtype=np.float32)
+PERM = RNG.permutation(300)
+D2 = D1[PERM] + RNG.normal(0, 0.01, (300, 128)).astype(np.float32)
+
+
+@pytest.mark.parametrize("method", ["flann", "brute"])
+def test_nearest_neighbours_find_the_permutation(method):
+    _, idxs = match_nn(D1, D2, method=method)
+    inv = np.argsort(PERM)
+    assert (idxs[:, 1] == inv[idxs[:, 0]]).mean() > 0.99
+
+
+def test_ratio_test_drops_ambiguous_matches():
+    d2 = np.vstack([D2, D2[:10] + 1e-4])  # ten descriptors now have a twin
+    _, idxs = match_snn(D1, d2, ratio=0.8, method="brute")
+    inv = np.argsort(PERM)
+    twins = set(PERM[:10].tolist())
+    assert not twins & set(idxs[:, 0].tolist())
+    assert len(idxs) >= 285
+
+
+def test_mutual_check():
+    d2 = D2[:50]
+    _, nn = match_nn(D1, d2, method="brute")
+    _, mnn = match_mnn(D1, d2, method="brute")
+    assert len(nn) == 300 and len(mnn) == 50
+    _, smnn = match_smnn(D1, d2, method="brute")
+    assert len(smnn) <= len(mnn)
+
+
+def test_knn_shapes_and_empty_inputs():
+    d, i = knn(D1[:5], D2, 3, method="brute")
+    assert d.shape == i.shape == (5, 3)
+    assert (np.diff(d, axis=1) >= 0).all()
+    d, i = knn(D1[:5], D2[:0], 2)
+    assert np.isinf(d).all() and (i == -1).all()
+    dists, idxs = match_snn(D1[:0], D2)
+    assert idxs.shape == (0, 2)
+
+
+def test_binary_descriptors_use_hamming():
+    b1 = RNG.integers(0, 256, (40, 32), dtype=np.uint8)
+    b2 = b1[::-1].copy()
+    d, idxs = match_nn(b1, b2)
+    assert (idxs[:, 1] == 39 - idxs[:, 0]).all() and (d == 0).all()
+
+
+def test_mismatched_sizes_and_methods_are_errors():
+    with pytest.raises(ValueError):
+        knn(D1, D2[:, :64])
+    with pytest.raises(ValueError):
+        knn(D1, D2, method="nope")
