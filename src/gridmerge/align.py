@@ -352,18 +352,19 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
     )
     if not hyps:
         return _Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches")
-    scored = []
-    for h in hyps[: opts.hypotheses]:
-        model, inl = h.transform, h.inliers
-        refined = None
-        if opts.refine:
-            refined, report = refine_direct(a, b, model, rng=rng)
-            if report.accepted:
-                model = refined
-                inl = model.residuals(src, dst) < opts.residual_threshold
+    def score(model, inl, support):
         v = verify(a, b, model, tolerance=opts.wall_tolerance)
         wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
-        scored.append((_evidence(int(inl.sum()), 2) * wall, model, inl, v, h.support))
+        return (_evidence(int(inl.sum()), 2) * wall, model, inl, v, support)
+
+    # Verify every hypothesis as it is, then refine only the most promising ones.
+    scored = sorted((score(h.transform, h.inliers, h.support) for h in hyps), key=lambda t: -t[0])
+    if opts.refine:
+        for k in range(min(_REFINE_TOP, len(scored))):
+            _, model, inl, _, support = scored[k]
+            refined, report = refine_direct(a, b, model, rng=rng)
+            if report.accepted:
+                scored[k] = score(refined, refined.residuals(src, dst) < opts.residual_threshold, support)
     scored.sort(key=lambda t: -t[0])
     best = scored[0]
     details = {
@@ -493,6 +494,8 @@ def align(
 
 
 _CROP_MARGIN = 8
+#: Hypotheses refined against the maps (the best by their unrefined score).
+_REFINE_TOP = 3
 
 
 def _crop_known(grid: OccupancyGrid, margin: int) -> tuple[OccupancyGrid, np.ndarray]:

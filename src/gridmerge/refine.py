@@ -92,8 +92,8 @@ def refine_direct(
     initial: SimilarityTransform,
     *,
     sigmas=(3.0, 1.5, 1.0),
-    iterations: int = 15,
-    max_points: int = 40000,
+    iterations: int = 10,
+    max_points: int = 20000,
     max_shift: float = 12.0,
     rng=0,
 ) -> tuple[SimilarityTransform, RefineReport]:

@@ -10,6 +10,7 @@ import argparse
 import json
 import os
 import sys
+import traceback
 from pathlib import Path
 from typing import Sequence
 
@@ -45,8 +46,9 @@ def _parser() -> argparse.ArgumentParser:
     common.add_argument(
         "--resolution",
         type=float,
-        default=DEFAULT_RESOLUTION,
-        help=f"resolution (m/cell) of maps given as bare images or .npy (default {DEFAULT_RESOLUTION})",
+        default=None,
+        help=f"resolution (m/cell) of maps given as bare images or .npy (default {DEFAULT_RESOLUTION}); "
+        "a map_server YAML keeps its own",
     )
     common.add_argument("--method", choices=sorted(METHODS), default="sift", help="alignment method (default: sift)")
     common.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
@@ -110,6 +112,8 @@ def _input_files(paths: Sequence[str]) -> list[Path]:
 def _check_output(path: Path, inputs: list[Path], force: bool, what: str) -> None:
     if not path.parent.is_dir():
         raise OutputError(f"{what} folder does not exist: {path.parent}")
+    if path.is_dir():
+        raise OutputError(f"{what} {path} is a directory")
     for q in inputs:
         if _same_file(path, q):
             raise OutputError(f"{what} {path} is one of the inputs; choose another name")
@@ -117,8 +121,12 @@ def _check_output(path: Path, inputs: list[Path], force: bool, what: str) -> Non
         raise OutputError(f"{what} {path} exists; use --force to overwrite it")
 
 
-def _load_all(paths: Sequence[str], resolution: float):
-    return [load_map(p, resolution=resolution) for p in paths]
+def _load_all(paths: Sequence[str], resolution: float | None):
+    # --resolution is for bare images and .npy files; a YAML's own resolution is kept.
+    return [
+        load_map(p, resolution=None if Path(p).suffix.lower() in YAML_SUFFIXES else resolution)
+        for p in paths
+    ]
 
 
 def _print_json(obj) -> None:
@@ -195,8 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help and --version
         return int(exc.code or 0) if isinstance(exc.code, int) else 0
     except Exception as exc:  # noqa: BLE001 - every error ends as one line
-        if debug:
-            raise
+        if debug:  # the traceback, then the usual line and exit code (not Python's 1 = "declined")
+            traceback.print_exc()
         if isinstance(exc, GridMergeError):
             msg = str(exc)
         elif isinstance(exc, MemoryError):

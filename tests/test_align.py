@@ -1,0 +1,157 @@
+import json
+import math
+
+import numpy as np
+import pytest
+
+import gridmerge
+from gridmerge import AlignResult, OccupancyGrid, align, samples
+from gridmerge.transforms import ScaledRotationTransform, SimilarityTransform, corner_error
+
+# The paper's Table I: exact 30 deg, (-86, -36) px, 0.95; its estimate was off by
+# 0.09 deg, 0.21 px (x), 0.11 px (y) and 0.0003 in scale.
+TABLE1_DEG, TABLE1_PX, TABLE1_SCALE = 0.09, 0.21, 0.0003
+
+
+@pytest.fixture(scope="module")
+def table1():
+    return samples.table1_pair(0)
+
+
+@pytest.fixture(scope="module")
+def table1_result(table1):
+    a, b, _ = table1
+    return align(a, b)
+
+
+def _errors(t, truth):
+    dth = abs(math.degrees(t.rotation) - math.degrees(math.atan2(truth[1, 0], truth[0, 0])))
+    dxy = np.abs(t.translation - truth[:2, 2])
+    return dth, dxy, abs(t.scale - math.hypot(truth[0, 0], truth[1, 0]))
+
+
+def test_default_method_beats_table_1(table1, table1_result):
+    _, b, truth = table1
+    r = table1_result
+    assert r.success and isinstance(r.transform, SimilarityTransform)
+    dth, dxy, ds = _errors(r.transform, truth)
+    assert dth <= TABLE1_DEG and dxy.max() <= TABLE1_PX and ds <= TABLE1_SCALE
+    # ... and by a wide margin: sub-pixel refinement against the maps.
+    assert corner_error(r.transform, truth, b.shape) < 0.1
+    assert r.confidence > 0.9 and r.acceptance_index > 0.95 and r.inliers >= 20
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_table_1_with_other_buildings(seed):
+    a, b, truth = samples.table1_pair(seed)
+    r = align(a, b, rng=seed)
+    dth, dxy, ds = _errors(r.transform, truth)
+    assert r.success and dth <= TABLE1_DEG and dxy.max() <= TABLE1_PX and ds <= TABLE1_SCALE
+
+
+def test_ransac_method_beats_table_1(table1):
+    a, b, truth = table1
+    r = align(a, b, method="ransac")
+    dth, dxy, ds = _errors(r.transform, truth)
+    assert r.success and dth <= TABLE1_DEG and dxy.max() <= TABLE1_PX and ds <= TABLE1_SCALE
+
+
+def test_paper_method_recovers_table_1(table1):
+    # The paper's estimator as written (mean of a cluster of 3-point solutions, no
+    # refinement) lands close to Table I but is not as precise as our default.
+    a, b, truth = table1
+    r = align(a, b, method="paper")
+    assert r.success and isinstance(r.transform, ScaledRotationTransform)
+    dx, dy, th, sx, sy = r.transform.parameters
+    assert abs(math.degrees(th) - 30) < 0.1
+    assert abs(dx + 86) < 1.0 and abs(dy + 36) < 1.0
+    assert abs(sx - 0.95) < 2e-3 and abs(sy - 0.95) < 2e-3
+    assert corner_error(r.transform, truth, b.shape) < 1.5
+    assert r.to_dict()["scale_x"] == pytest.approx(sx)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_simulated_robot_pairs_align_precisely(seed):
+    a, b, truth = samples.robot_pair(seed)
+    r = align(a, b, rng=seed)
+    assert r.success
+    assert corner_error(r.transform, truth, b.shape) < 2.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+@pytest.mark.parametrize("method", ["sift", "ransac", "paper"])
+def test_maps_of_different_places_are_declined(seed, method):
+    a, b = samples.negative_pair(seed)
+    r = align(a, b, method=method, rng=seed)
+    assert not r.success and r.transform is None and r.matrix is None
+    assert r.message.startswith("declined") or "no consistent" in r.message or "too few" in r.message
+    assert r.confidence < 0.5
+
+
+def test_same_seed_same_result(table1):
+    a, b, _ = table1
+    r1, r2 = align(a, b, rng=3), align(a, b, rng=3)
+    np.testing.assert_array_equal(r1.matrix, r2.matrix)
+
+
+def test_metric_transform_maps_points_between_map_frames(table1, table1_result):
+    a, b, truth = table1
+    r = table1_result
+    # A cell of b, its metric coordinates in b's frame, moved by the metric transform,
+    # must be the metric coordinates of the same place in a.
+    p_b = np.array([[100.0, 50.0], [400.0, 200.0]])
+    in_a = a.pixel_to_metric(r.transform(p_b))
+    np.testing.assert_allclose(r.metric_transform(b.pixel_to_metric(p_b)), in_a, atol=1e-9)
+    m = r.metric
+    assert set(m) == {"x", "y", "yaw", "scale"}
+    # b's resolution is a's / 0.95 here, so the metric scale is ~1 and the yaw is -30 deg
+    # (image y points down, ROS y up).
+    assert m["scale"] == pytest.approx(1.0, abs=1e-3)
+    assert math.degrees(m["yaw"]) == pytest.approx(-30.0, abs=0.05)
+
+
+def test_result_round_trips_through_json(tmp_path, table1_result):
+    r = table1_result
+    path = tmp_path / "r.json"
+    r.save(path)
+    back = AlignResult.load(path)
+    assert back.success and back.inliers == r.inliers
+    np.testing.assert_allclose(back.matrix, r.matrix)
+    d = json.loads(path.read_text())
+    for key in ("success", "matrix", "rotation_deg", "scale", "translation_px", "metric", "confidence", "acceptance_index", "inliers", "elapsed_s"):
+        assert key in d
+
+
+def test_inputs_are_not_modified(table1):
+    a, b, _ = table1
+    before = a.data.copy(), b.data.copy()
+    align(a, b)
+    np.testing.assert_array_equal(a.data, before[0])
+    np.testing.assert_array_equal(b.data, before[1])
+
+
+def test_blank_maps_are_declined_not_crashed():
+    blank = OccupancyGrid(np.zeros((60, 60)))
+    unknown = OccupancyGrid(np.full((60, 60), np.nan))
+    for x, y in [(blank, blank), (unknown, unknown), (blank, unknown)]:
+        r = align(x, y)
+        assert not r.success and r.matrix is None
+
+
+def test_unknown_method_is_an_error(table1):
+    a, b, _ = table1
+    with pytest.raises(gridmerge.GridMergeError):
+        align(a, b, method="magic")
+
+
+@pytest.mark.shared
+def test_real_apartment_maps_hih_01_02(shared_data):
+    pairs = json.loads((shared_data / "halmstad" / "HIH_pairs.json").read_text())["pairs"]
+    pair = next(p for p in pairs if (p["a"], p["b"]) == ("HIH_01", "HIH_02"))
+    a = gridmerge.load_map(shared_data / "halmstad" / "HIH" / "HIH_01.png")
+    b = gridmerge.load_map(shared_data / "halmstad" / "HIH" / "HIH_02.png")
+    r = align(a, b)
+    assert r.success
+    err = np.median(np.hypot(*(r.transform(np.array(pair["points_b"])) - np.array(pair["points_a"])).T))
+    # The data set's scoring protocol: within max(20 px, 2 x the hand-fit residual).
+    assert err <= max(20.0, 2 * pair["fit_median_residual_px"])

@@ -1,0 +1,116 @@
+import importlib
+import math
+
+import numpy as np
+import pytest
+
+import gridmerge
+from gridmerge import OccupancyGrid, merge, samples
+from gridmerge.merge import canvas_for
+from gridmerge.transforms import SimilarityTransform
+
+
+@pytest.fixture(scope="module")
+def pair():
+    a, b, truth = samples.robot_pair(0)
+    # Give a a real ROS origin with yaw, so that frame handling is exercised.
+    a = a.replace(origin=(3.0, -2.0, 0.3))
+    return a, b, truth
+
+
+@pytest.fixture(scope="module")
+def merged(pair):
+    a, b, _ = pair
+    return merge([a, b])
+
+
+def test_merge_places_b_and_keeps_a_in_its_metric_frame(pair, merged):
+    a, b, _ = pair
+    m = merged
+    assert m.success and m.unplaced == [] and m.grid.resolution == a.resolution
+    g = m.grid
+    # Every known cell of a sits at the same metric coordinates in the merged map.
+    ys, xs = np.nonzero(a.known)
+    pick = np.linspace(0, len(xs) - 1, 200).astype(int)
+    pa = np.stack([xs[pick], ys[pick]], 1).astype(float)
+    pm = g.metric_to_pixel(a.pixel_to_metric(pa))
+    np.testing.assert_allclose(pm, np.rint(pm), atol=1e-6)  # lands on cell centres
+    np.testing.assert_allclose(m.transforms[0](pa), pm, atol=1e-6)
+    assert g.origin[2] == pytest.approx(0.3)
+
+
+def test_merged_cells_follow_eq_9(pair, merged):
+    a, b, _ = pair
+    g, t = merged.grid, merged.transforms
+    ys, xs = np.nonzero(a.known)
+    cells = np.rint(t[0](np.stack([xs, ys], 1))).astype(int)
+    vals = g.data[cells[:, 1], cells[:, 0]]
+    # Where a knows a cell, the merged map knows it; where b does not, it is a's value.
+    assert not np.isnan(vals).any()
+    warped_b = gridmerge.fuse.warp_values(b.data, t[1].params, g.shape)
+    only_a = np.isnan(warped_b[cells[:, 1], cells[:, 0]])
+    np.testing.assert_allclose(vals[only_a], a.data[ys, xs][only_a], atol=1e-6)
+    both = ~only_a
+    np.testing.assert_allclose(vals[both], (a.data[ys, xs][both] + warped_b[cells[:, 1], cells[:, 0]][both]) / 2, atol=1e-5)
+
+
+def test_merged_map_holds_both_maps(pair, merged):
+    a, b, _ = pair
+    g = merged.grid
+    assert np.count_nonzero(g.known) > max(np.count_nonzero(a.known), np.count_nonzero(b.known) * 0.8)
+    assert merged.transforms[1] is not None
+
+
+@pytest.mark.parametrize("fusion", ["average", "logodds", "max"])
+def test_fusion_rules(pair, fusion):
+    a, b, _ = pair
+    m = merge([a, b], fusion=fusion)
+    assert m.success and m.fusion == fusion
+    assert np.isnan(m.grid.data).any() and (~np.isnan(m.grid.data)).any()
+
+
+def test_unplaced_maps_are_reported_and_the_rest_merged(pair):
+    a, b, _ = pair
+    other, _ = samples.negative_pair(5)
+    other = other.replace(name="elsewhere")
+    m = merge([a, b, other])
+    assert m.success and m.unplaced == ["elsewhere"] and m.transforms[2] is None
+    d = m.to_dict()
+    assert d["unplaced"] == ["elsewhere"] and [e["placed"] for e in d["maps"]] == [True, True, False]
+
+
+def test_no_merge_when_nothing_aligns():
+    a, b = samples.negative_pair(1)
+    m = merge([a, b])
+    assert not m.success and m.grid is None and "no two maps" in m.message
+
+
+def test_merge_needs_two_maps_and_known_rules(pair):
+    a, _, _ = pair
+    with pytest.raises(gridmerge.GridMergeError):
+        merge([a])
+    with pytest.raises(gridmerge.GridMergeError):
+        merge([a, a], fusion="median")
+
+
+def test_canvas_covers_every_map():
+    (h, w), (left, top, bottom) = canvas_for([(10, 10)], [SimilarityTransform(translation=(-5.0, 12.0))], (20, 20))
+    assert (left, top, bottom) == (5, 0, 2) and (h, w) == (22, 25)
+    (h, w), off = canvas_for([(10, 10)], [SimilarityTransform(rotation=math.pi, translation=(9, 9))], (20, 20))
+    assert (h, w) == (20, 20) and off == (0, 0, 0)
+
+
+def test_absurd_canvas_is_declined_not_allocated(pair, monkeypatch):
+    a, b, _ = pair
+    mm = importlib.import_module("gridmerge.merge")  # the module, not the function
+
+    real_align = mm.align
+
+    def far_away(*args, **kwargs):
+        r = real_align(*args, **kwargs)
+        r.transform = SimilarityTransform(translation=(1e7, 1e7))
+        return r
+
+    monkeypatch.setattr(mm, "align", far_away)
+    m = mm.merge([a, b])
+    assert not m.success and "limit" in m.message
