@@ -31,6 +31,18 @@ def require_matplotlib():
     return plt
 
 
+def _crop(grid: OccupancyGrid, margin: int = 20):
+    """The rendered grid cut to its known cells (plus a margin), and the cut's (x, y) offset."""
+    img = grid.render()
+    rows = np.flatnonzero(grid.known.any(1))
+    cols = np.flatnonzero(grid.known.any(0))
+    if len(rows) == 0:
+        return img, np.zeros(2)
+    y0, x0 = max(0, rows[0] - margin), max(0, cols[0] - margin)
+    y1, x1 = min(grid.height, rows[-1] + 1 + margin), min(grid.width, cols[-1] + 1 + margin)
+    return img[y0:y1, x0:x1], np.array([x0, y0], dtype=float)
+
+
 def _side_by_side(a: np.ndarray, b: np.ndarray, gap: int = 10):
     h = max(a.shape[0], b.shape[0])
     canvas = np.full((h, a.shape[1] + gap + b.shape[1]), 255, dtype=np.uint8)
@@ -61,12 +73,15 @@ def plot_merge(
     plt = require_matplotlib()
     rows = 2 if merged is not None else 1
     fig, axes = plt.subplots(rows, 1, figsize=(10, 5.5 * rows), squeeze=False)
-    img, off = _side_by_side(a.render(), b.render())
+    img_a, off_a = _crop(a)
+    img_b, off_b = _crop(b)
+    img, off = _side_by_side(img_a, img_b)
     ax = axes[0, 0]
     ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
     pts = alignment.inlier_xy
     if len(pts) > max_lines:
         pts = pts[np.linspace(0, len(pts) - 1, max_lines).astype(int)]
+    pts = pts - np.stack([off_b, off_a])  # into the cropped panels' pixels
     for (xb, yb), (xa, ya) in pts:
         ax.plot([xa, xb + off], [ya, yb], "-", color="tab:red", lw=0.6, alpha=0.7)
     if len(pts):
@@ -74,14 +89,14 @@ def plot_merge(
         ax.plot(pts[:, 0, 0] + off, pts[:, 0, 1], ".", color="tab:blue", ms=3)
     state = "aligned" if alignment.success else "declined"
     ax.set_title(
-        f"{a.name or 'map a'}  |  {b.name or 'map b'}: {alignment.inliers} inlier matches, {state}, "
+        f"{Path(a.name or 'map a').name}  |  {Path(b.name or 'map b').name}: {alignment.inliers} inlier matches, {state}, "
         f"confidence {alignment.confidence:.2f}",
         fontsize=9,
     )
     ax.set_axis_off()
     if merged is not None:
         ax = axes[1, 0]
-        ax.imshow(merged.render(), cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        ax.imshow(_crop(merged)[0], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
         t = alignment.transform
         sub = ""
         if t is not None:

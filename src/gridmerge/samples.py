@@ -1074,3 +1074,49 @@ def negative_pair(seed: int = 0, *, shape: Sequence[int] = (480, 640)) -> tuple[
     wb = building(int(seed) + 1, shape)
     a, b, _ = _make_pair(wa, wb, rng, 0.5, None, None, (f"negative a (seed={seed})", f"negative b (seed={seed + 1})"))
     return a, b
+
+
+#: The sample pairs :func:`write_sample` can write.
+SAMPLE_KINDS = ("robots", "table1", "different")
+
+
+def write_sample(folder, kind: str = "robots", seed: int = 0) -> dict:
+    """Write a sample pair of maps as map_server files, for trying the command line.
+
+    Writes ``a.yaml``/``a.pgm`` and ``b.yaml``/``b.pgm`` (and ``truth.json`` with the 3x3
+    matrix mapping b's pixels to a's, except for ``"different"``) into ``folder``, which
+    must exist.
+
+    Parameters
+    ----------
+    folder : str or path-like
+    kind : {"robots", "table1", "different"}
+        Two robots exploring one building (:func:`robot_pair`), the paper's Table I
+        experiment (:func:`table1_pair`), or maps of two different buildings
+        (:func:`negative_pair`).
+    seed : int
+
+    Returns
+    -------
+    dict
+        The paths written, by role (``"a"``, ``"b"``, ``"truth"``).
+    """
+    import json
+    from pathlib import Path
+
+    from .io import atomic_write, save_map
+
+    folder = Path(folder)
+    if kind == "robots":
+        a, b, truth = robot_pair(seed)
+    elif kind == "table1":
+        a, b, truth = table1_pair(seed)
+    elif kind == "different":
+        (a, b), truth = negative_pair(seed), None
+    else:
+        raise ValueError(f"unknown sample kind {kind!r} (use one of {', '.join(SAMPLE_KINDS)})")
+    out = {"a": save_map(a, folder / "a.yaml"), "b": save_map(b, folder / "b.yaml")}
+    if truth is not None:
+        out["truth"] = folder / "truth.json"
+        atomic_write(out["truth"], (json.dumps({"b_to_a": np.asarray(truth).tolist()}) + "\n").encode())
+    return out

@@ -22,6 +22,7 @@ from ..grid import DEFAULT_RESOLUTION
 from ..io import SAVE_MODES, load_map, save_map
 from ..io.map_server import YAML_SUFFIXES
 from ..merge import merge
+from ..samples import SAMPLE_KINDS, write_sample
 
 __all__ = ["main", "EXIT_OK", "EXIT_DECLINED", "EXIT_BAD_INPUT"]
 
@@ -80,6 +81,16 @@ def _parser() -> argparse.ArgumentParser:
     pm.add_argument("--save-mode", choices=SAVE_MODES, default="trinary", help="image mode of the output (default: trinary, as map_saver)")
     pm.add_argument("--plot", metavar="PNG", help="also write a picture of the matches and the merged map")
     pm.add_argument("--force", action="store_true", help="overwrite existing output files")
+    ps = sub.add_parser(
+        "sample",
+        help="write a sample pair of maps to try the other commands on",
+        description="Write a.yaml/a.pgm and b.yaml/b.pgm (and truth.json) into FOLDER.",
+    )
+    ps.add_argument("folder", metavar="FOLDER", help="an existing folder")
+    ps.add_argument("--kind", choices=SAMPLE_KINDS, default="robots", help="robots (default): two robots in one building; table1: the paper's experiment; different: two buildings")
+    ps.add_argument("--seed", type=int, default=0, help="building seed (default 0)")
+    ps.add_argument("--force", action="store_true", help="overwrite existing files")
+    ps.add_argument("--debug", action="store_true", help="show the traceback of errors")
     return p
 
 
@@ -188,6 +199,18 @@ def _cmd_merge(args) -> int:
     return EXIT_OK if result.success else EXIT_DECLINED
 
 
+def _cmd_sample(args) -> int:
+    folder = Path(args.folder)
+    for name in ("a.yaml", "a.pgm", "b.yaml", "b.pgm", "truth.json"):
+        _check_output(folder / name, [], args.force, "output")
+    written = write_sample(folder, args.kind, args.seed)
+    print("wrote " + ", ".join(str(p) for p in written.values()))
+    return EXIT_OK
+
+
+_COMMANDS = {"align": _cmd_align, "merge": _cmd_merge, "sample": _cmd_sample}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -195,8 +218,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         if args.command is None:
-            raise _UsageError("a command is needed: align or merge")
-        return _cmd_align(args) if args.command == "align" else _cmd_merge(args)
+            raise _UsageError(f"a command is needed: {', '.join(_COMMANDS)}")
+        return _COMMANDS[args.command](args)
     except KeyboardInterrupt:
         print("gridmerge: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -1,0 +1,614 @@
+"""End-to-end tests of the ``gridmerge`` program, run as a real subprocess.
+
+Every test runs ``python -m gridmerge ...`` (the same code as the ``gridmerge`` console
+script) and checks what a user sees: the exit code (0 done, 1 declined, 2 bad input),
+stdout (JSON or text), stderr (one line on errors, no traceback unless ``--debug``) and
+the files left in the folder (the output, or nothing at all; inputs never change).
+
+Every run of the module is declared once in the module-scoped ``runs`` fixture and they
+run side by side (one per CPU, at least two, at most eight): each costs about 0.4 s of
+imports, alignments and merges 1-3 s, so one after the other they take about 30 s.
+Each run that writes has its own folder, so the runs cannot disturb one another.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import gridmerge
+from gridmerge import OccupancyGrid, load_map, save_map
+from gridmerge.fuse import FUSION_RULES
+
+#: A subprocess never takes longer than this (a hang fails one test, not the suite).
+TIMEOUT_S = 120
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+# --------------------------------------------------------------------- helpers
+def _command(args) -> list:
+    return [sys.executable, "-m", "gridmerge", *map(str, args)]
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env.setdefault("MPLBACKEND", "Agg")
+    return env
+
+
+@dataclass
+class Job:
+    """One declared run of the program."""
+
+    args: list
+    cwd: Path
+    log: Path
+    before: dict = field(default_factory=dict)  # snapshot of cwd when it was declared
+    skip: str = ""  # reason to skip the tests of this run (its set-up was impossible)
+    proc: subprocess.Popen | None = None
+    result: subprocess.CompletedProcess | None = None
+    started: float = 0.0
+
+
+class Runner:
+    """Runs the declared jobs side by side, at most ``limit`` at a time, in the order
+    declared (a job asked for is started next); :meth:`get` waits for one job, starting
+    others as slots free up. :meth:`close` kills the jobs still running."""
+
+    def __init__(self, logs: Path, limit: int):
+        self.logs, self.limit = logs, limit
+        self.jobs: dict[str, Job] = {}
+        self.pending: list[str] = []
+
+    def add(self, key: str, args, cwd: Path, skip: str = "") -> Job:
+        assert key not in self.jobs, key
+        job = Job([str(a) for a in args], Path(cwd), self.logs / f"{len(self.jobs):03d}-{re.sub(r'[^A-Za-z0-9_-]', '_', key)}", snapshot(cwd), skip)
+        self.jobs[key] = job
+        if not skip:
+            self.pending.append(key)
+        return job
+
+    def _running(self) -> list[Job]:
+        return [j for j in self.jobs.values() if j.proc is not None and j.result is None]
+
+    def _reap(self, job: Job, wait: bool) -> None:
+        if job.proc is None or job.result is not None:
+            return
+        if wait:
+            try:
+                job.proc.wait(timeout=max(1.0, TIMEOUT_S - (time.monotonic() - job.started)))
+            except subprocess.TimeoutExpired:
+                job.proc.kill()
+                job.proc.wait()
+        elif job.proc.poll() is None:
+            return
+        out = Path(f"{job.log}.out").read_text(errors="replace")
+        err = Path(f"{job.log}.err").read_text(errors="replace")
+        job.result = subprocess.CompletedProcess(job.proc.args, job.proc.returncode, out, err)
+
+    def _pump(self) -> None:
+        for job in self._running():
+            self._reap(job, wait=False)
+        while self.pending and len(self._running()) < self.limit:
+            job = self.jobs[self.pending.pop(0)]
+            with open(f"{job.log}.out", "wb") as out, open(f"{job.log}.err", "wb") as err:
+                job.proc = subprocess.Popen(
+                    _command(job.args), cwd=str(job.cwd), env=_env(), stdin=subprocess.DEVNULL, stdout=out, stderr=err
+                )
+            job.started = time.monotonic()
+
+    def get(self, key: str) -> Job:
+        job = self.jobs[key]
+        if job.skip:
+            pytest.skip(job.skip)
+        if key in self.pending:  # wanted now: start it next
+            self.pending.remove(key)
+            self.pending.insert(0, key)
+        while job.result is None:
+            self._pump()
+            if job.result is not None:
+                break
+            if job.proc is not None and time.monotonic() - job.started > TIMEOUT_S:
+                self._reap(job, wait=True)  # kills it
+            else:
+                time.sleep(0.01)
+        return job
+
+    def close(self) -> None:
+        self.pending.clear()
+        for job in self._running():
+            job.proc.kill()
+            job.proc.wait()
+
+
+def snapshot(folder: Path) -> dict:
+    """``{relative path: sha256}`` of everything below ``folder``, hidden files included
+    (directories as ``"<dir>"``)."""
+    out = {}
+    for p in sorted(Path(folder).rglob("*")):
+        rel = p.relative_to(folder).as_posix()
+        out[rel] = "<dir>" if p.is_dir() and not p.is_symlink() else hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def describe(proc: subprocess.CompletedProcess) -> str:
+    return f"exit {proc.returncode}\n--- stdout ---\n{proc.stdout[-3000:]}\n--- stderr ---\n{proc.stderr[-3000:]}"
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess, code: int = 2, contains: str | None = None) -> str:
+    """The contract for errors: exit ``code``, nothing on stdout, exactly one non-empty
+    line on stderr, starting with ``gridmerge: error:``, and no traceback."""
+    assert proc.returncode == code, describe(proc)
+    assert "Traceback" not in proc.stderr, describe(proc)
+    assert proc.stdout == "", describe(proc)
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and proc.stderr.endswith("\n"), describe(proc)
+    line = lines[0]
+    assert line.startswith("gridmerge: error: ") and line[len("gridmerge: error: "):].strip(), describe(proc)
+    if contains is not None:
+        assert contains.lower() in line.lower(), describe(proc)
+    return line
+
+
+def parse_json(proc: subprocess.CompletedProcess) -> dict:
+    """stdout must be exactly one JSON object (json.loads refuses trailing text)."""
+    d = json.loads(proc.stdout)
+    assert isinstance(d, dict), proc.stdout[:200]
+    return d
+
+
+def corner_error(matrix, truth: np.ndarray, shape) -> float:
+    """Largest distance (a pixels) between the images of b's corners under both transforms."""
+    h, w = shape
+    corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [w - 0.5, h - 0.5, 1], [-0.5, h - 0.5, 1]], float)
+    m = np.asarray(matrix, dtype=float)
+    assert m.shape == (2, 3)
+    return float(np.hypot(*(corners @ m.T - corners @ truth[:2].T).T).max())
+
+
+def metric_matrix(metric: dict) -> np.ndarray:
+    """The (3, 3) similarity of a ``{"x", "y", "yaw", "scale"}`` pose."""
+    c, s = metric["scale"] * math.cos(metric["yaw"]), metric["scale"] * math.sin(metric["yaw"])
+    return np.array([[c, -s, metric["x"]], [s, c, metric["y"]], [0.0, 0.0, 1.0]])
+
+
+def metric_error(metric: dict, a: OccupancyGrid, b: OccupancyGrid, truth: np.ndarray) -> float:
+    """Largest distance (metres, in a's frame) between where the reported metric pose puts
+    points of b and where they truly are: ``a.pixel_to_metric(truth(p))``."""
+    h, w = b.shape
+    xs, ys = np.meshgrid(np.linspace(0, w - 1, 7), np.linspace(0, h - 1, 5))
+    p_b = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    true_a_px = p_b @ truth[:2, :2].T + truth[:2, 2]
+    expected = a.pixel_to_metric(true_a_px)
+    m = metric_matrix(metric)
+    reported = b.pixel_to_metric(p_b) @ m[:2, :2].T + m[:2, 2]
+    return float(np.hypot(*(reported - expected).T).max())
+
+
+def check_a_kept(merged: OccupancyGrid, a: OccupancyGrid, seed: int = 0) -> None:
+    """Cells of a far from walls keep their value at the same metric place of the merged map.
+
+    Free cells whose 7 x 7 neighbourhood is free, and occupied cells whose 3 x 3
+    neighbourhood is occupied, go through a's metric frame into the merged map's pixels;
+    those must fall exactly on cell centres and hold the same occupancy.
+    """
+    rng = np.random.default_rng(seed)
+    kernel7, kernel3 = np.ones((7, 7), np.uint8), np.ones((3, 3), np.uint8)
+    deep_free = cv2.erode(a.free().astype(np.uint8), kernel7, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    deep_occ = cv2.erode(a.occupied().astype(np.uint8), kernel3, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    assert deep_free.sum() > 1000 and deep_occ.sum() > 100
+    for mask, expected in ((deep_free, 0.0), (deep_occ, 1.0)):
+        rows, cols = np.nonzero(mask)
+        pick = rng.choice(len(rows), min(3000, len(rows)), replace=False)
+        px_a = np.stack([cols[pick], rows[pick]], axis=1).astype(float)
+        px_m = merged.metric_to_pixel(a.pixel_to_metric(px_a))
+        # The merged map keeps a's cells: same resolution, whole-cell offset.
+        assert np.abs(px_m - np.rint(px_m)).max() < 1e-6
+        c, r = np.rint(px_m).astype(int).T
+        assert (c >= 0).all() and (r >= 0).all() and (c < merged.width).all() and (r < merged.height).all()
+        values = merged.data[r, c]
+        agree = np.mean(values == expected) if expected == 0.0 else np.mean(values > 0.65)
+        assert agree >= 0.99, f"only {agree:.1%} of a's deep {'free' if expected == 0 else 'occupied'} cells kept"
+
+
+# -------------------------------------------------------------- bad-input set-ups
+def _write(name, data):
+    def setup(folder: Path):
+        p = folder / name
+        p.write_bytes(data) if isinstance(data, bytes) else p.write_text(data)
+
+    return setup
+
+
+def _mkdir(name):
+    return lambda folder: (folder / name).mkdir()
+
+
+def _random_png(folder):
+    (folder / "noise.png").write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+
+
+def _truncated_pgm(folder):
+    data = (folder / "a.pgm").read_bytes()
+    (folder / "trunc.pgm").write_bytes(data[: len(data) // 3])
+
+
+def _npy(name, array):
+    return lambda folder: np.save(folder / name, array)
+
+
+def _symlink(folder):
+    try:
+        os.symlink("a.yaml", folder / "link.yaml")
+    except (OSError, NotImplementedError, AttributeError):
+        return "symbolic links are not available"
+
+
+def _hardlink(folder):
+    try:
+        os.link(folder / "a.yaml", folder / "hard.yaml")
+    except (OSError, NotImplementedError, AttributeError):
+        return "hard links are not available"
+
+
+def _old_output(folder):
+    (folder / "out.yaml").write_text("old\n")
+    (folder / "out.pgm").write_bytes(b"old")
+
+
+def _nothing(folder):
+    pass
+
+
+# (id, setup(folder) -> None or a reason to skip, arguments, a piece of the expected
+# error line). Each runs in a folder holding a.yaml, a.pgm, b.yaml and b.pgm.
+BAD_INPUT = [
+    ("missing-file", _nothing, ["merge", "a.yaml", "missing.yaml", "-o", "out.yaml"], "missing.yaml"),
+    ("directory", _mkdir("dir.yaml"), ["merge", "a.yaml", "dir.yaml", "-o", "out.yaml"], "dir.yaml"),
+    ("directory-no-suffix", _mkdir("maps"), ["align", "a.yaml", "maps"], "maps"),
+    ("random-bytes-png", _random_png, ["merge", "a.yaml", "noise.png", "-o", "out.yaml"], "noise.png"),
+    ("truncated-pgm", _truncated_pgm, ["merge", "a.yaml", "trunc.pgm", "-o", "out.yaml"], "trunc.pgm"),
+    ("binary-yaml", _write("bin.yaml", b"\x00\x01\x02\xff" * 50), ["merge", "a.yaml", "bin.yaml", "-o", "out.yaml"], "bin.yaml"),
+    ("yaml-syntax", _write("bad.yaml", "image: [a.pgm\nresolution: 0.05\n"), ["merge", "a.yaml", "bad.yaml", "-o", "out.yaml"], "bad.yaml"),
+    ("yaml-no-image", _write("noimg.yaml", "resolution: 0.05\norigin: [0, 0, 0]\n"), ["merge", "a.yaml", "noimg.yaml", "-o", "out.yaml"], "image"),
+    ("yaml-no-resolution", _write("nores.yaml", "image: a.pgm\norigin: [0, 0, 0]\n"), ["merge", "a.yaml", "nores.yaml", "-o", "out.yaml"], "resolution"),
+    ("yaml-image-missing", _write("gone.yaml", "image: gone.pgm\nresolution: 0.05\n"), ["merge", "a.yaml", "gone.yaml", "-o", "out.yaml"], "gone.pgm"),
+    ("empty-npy-0x0", _npy("empty.npy", np.zeros((0, 0))), ["merge", "a.yaml", "empty.npy", "-o", "out.yaml"], "empty"),
+    ("empty-npy-0x5", _npy("empty.npy", np.zeros((0, 5))), ["merge", "a.yaml", "empty.npy", "-o", "out.yaml"], "empty"),
+    ("npy-1d", _npy("line.npy", np.zeros(10)), ["align", "a.yaml", "line.npy"], "line.npy"),
+    ("unknown-extension", _write("map.txt", "hello\n"), ["align", "a.yaml", "map.txt"], "map.txt"),
+    ("resolution-zero", _nothing, ["align", "a.pgm", "b.pgm", "--resolution", "0"], "resolution"),
+    ("resolution-not-a-number", _nothing, ["align", "a.pgm", "b.pgm", "--resolution", "fine"], "resolution"),
+    ("output-folder-missing", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "nowhere/out.yaml"], "nowhere"),
+    ("plot-folder-missing", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "nowhere/p.png"], "nowhere"),
+    ("output-not-yaml", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.png"], "yaml"),
+    ("output-is-directory", _mkdir("out.yaml"), ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--force"], "directory"),
+    ("single-map", _nothing, ["merge", "a.yaml", "-o", "out.yaml"], "two maps"),
+    ("output-is-input", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "a.yaml"], "input"),
+    ("output-is-input-force", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "./a.yaml", "--force"], "input"),
+    ("output-image-is-input", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "a.yml", "--force"], "input"),
+    ("output-symlink-to-input", _symlink, ["merge", "a.yaml", "b.yaml", "-o", "link.yaml", "--force"], "input"),
+    ("output-hardlink-to-input", _hardlink, ["merge", "a.yaml", "b.yaml", "-o", "hard.yaml", "--force"], "input"),
+    ("plot-is-input", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "b.pgm", "--force"], "input"),
+    ("output-exists", _old_output, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml"], "--force"),
+    ("output-image-exists", _write("out.pgm", b"P5\n1 1\n255\n\x00"), ["merge", "a.yaml", "b.yaml", "-o", "out.yaml"], "--force"),
+    ("plot-exists", _write("p.png", b"old"), ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png"], "--force"),
+    ("unknown-option", _nothing, ["align", "a.yaml", "b.yaml", "--frobnicate"], "--frobnicate"),
+    ("unknown-method", _nothing, ["align", "a.yaml", "b.yaml", "--method", "magic"], "magic"),
+    ("unknown-fusion", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--fusion", "min"], "min"),
+    ("unknown-command", _nothing, ["stitch", "a.yaml", "b.yaml"], "stitch"),
+    ("no-command", _nothing, [], "command"),
+    ("align-one-map", _nothing, ["align", "a.yaml"], "required"),
+    ("merge-without-output", _nothing, ["merge", "a.yaml", "b.yaml"], "-o"),
+]
+
+OTHER_FUSIONS = [f for f in FUSION_RULES if f != "average"]
+
+
+# ------------------------------------------------------------------- the runs
+@pytest.fixture(scope="module")
+def runs(sample_maps, tmp_path_factory):
+    """Every run of this module, declared here and started in the background."""
+    base = tmp_path_factory.mktemp("runs")
+    logs = base / "_logs"
+    logs.mkdir()
+    runner = Runner(logs, limit=4)
+
+    def folder(key, *maps):
+        return sample_maps.copy_to(base / key, *(maps or ("a", "b")))
+
+    # The slow runs first, so that they start at once.
+    runner.add("merge", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png", "--json", "--fusion", "average"], folder("merge"))
+    runner.add("align-json", ["align", "a.yaml", "b.yaml", "--json"], sample_maps.folder)
+    for fusion in OTHER_FUSIONS:
+        runner.add(f"fusion-{fusion}", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--fusion", fusion, "--json"], folder(f"fusion-{fusion}"))
+    runner.add("merge-raw", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--save-mode", "raw"], folder("merge-raw"))
+    f = folder("merge-force")
+    _old_output(f)
+    runner.add("merge-force", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--force"], f)
+    runner.add("merge-negative", ["merge", "neg_a.yaml", "neg_b.yaml", "-o", "out.yaml", "--plot", "p.png"], folder("merge-negative", "neg_a", "neg_b"))
+    runner.add("align-text", ["align", "a.yaml", "b.yaml"], sample_maps.folder)
+    runner.add("align-negative", ["align", "neg_a.yaml", "neg_b.yaml", "--json"], sample_maps.folder)
+    runner.add("align-paper", ["align", "a.yaml", "b.yaml", "--json", "--method", "paper"], sample_maps.folder)
+    f = folder("merge-unknown", "a")
+    save_map(OccupancyGrid(np.full((120, 160), np.nan)), f / "unknown.yaml")
+    runner.add("merge-unknown", ["merge", "a.yaml", "unknown.yaml", "-o", "out.yaml", "--json"], f)
+    # Quick ones.
+    for key, setup, args, _ in BAD_INPUT:
+        f = folder(f"bad-{key}")
+        runner.add(f"bad-{key}", args, f, skip=setup(f) or "")
+    runner.add("debug", ["merge", "a.yaml", "missing.yaml", "-o", "out.yaml", "--debug"], folder("debug"))
+    runner.add("version", ["--version"], base)
+    for args in (["--help"], ["align", "--help"], ["merge", "--help"]):
+        runner.add("help-" + "-".join(args), args, base)
+    yield runner
+    runner.close()
+
+
+# ---------------------------------------------------------------------- basics
+def test_python_m_gridmerge_runs(runs):
+    proc = runs.get("version").result
+    assert proc.returncode == 0, describe(proc)
+    assert proc.stdout.strip() == f"gridmerge {gridmerge.__version__}"
+    assert proc.stderr == ""
+
+
+def test_console_script_on_path(tmp_path):
+    exe = shutil.which("gridmerge")
+    if exe is None:
+        pytest.skip("the gridmerge console script is not installed on PATH")
+    proc = subprocess.run([exe, "--version"], cwd=tmp_path, capture_output=True, text=True, timeout=TIMEOUT_S, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, describe(proc)
+    assert proc.stdout.strip() == f"gridmerge {gridmerge.__version__}"
+
+
+@pytest.mark.parametrize("args", [["--help"], ["align", "--help"], ["merge", "--help"]], ids=["top", "align", "merge"])
+def test_help(args, runs):
+    proc = runs.get("help-" + "-".join(args)).result
+    assert proc.returncode == 0, describe(proc)
+    assert proc.stdout.startswith("usage: gridmerge")
+    assert proc.stderr == ""
+    if args[0] == "--help":
+        assert "align" in proc.stdout and "merge" in proc.stdout
+    if args[0] == "merge":
+        for option in ("--output", "--fusion", "--plot", "--force", "--save-mode", "--json"):
+            assert option in proc.stdout
+
+
+# ----------------------------------------------------------------------- align
+ALIGN_KEYS = {
+    "success", "matrix", "rotation_deg", "scale", "translation_px", "metric",
+    "confidence", "acceptance_index", "inliers", "elapsed_s",
+}
+
+
+def test_align_json_success(runs):
+    proc = runs.get("align-json").result
+    assert proc.returncode == 0, describe(proc)
+    assert proc.stderr == ""
+    d = parse_json(proc)
+    assert ALIGN_KEYS <= d.keys()
+    assert d["success"] is True
+    assert d["method"] == "sift"
+    assert isinstance(d["inliers"], int) and d["inliers"] >= 8
+    assert 0.5 <= d["confidence"] <= 1.0
+    assert 0.7 <= d["acceptance_index"] <= 1.0
+    assert isinstance(d["elapsed_s"], float) and 0 < d["elapsed_s"] < TIMEOUT_S
+
+
+def test_align_json_transform_matches_truth(runs, sample_maps):
+    d = parse_json(runs.get("align-json").result)
+    err = corner_error(d["matrix"], sample_maps.truth, sample_maps.b.shape)
+    assert err < 0.5, f"corner error {err:.3f} px"
+    assert d["rotation_deg"] == pytest.approx(30.0, abs=0.1)
+    assert d["scale"] == pytest.approx(0.95, abs=0.002)
+    assert d["translation_px"] == pytest.approx(np.asarray(d["matrix"])[:, 2].tolist())
+    assert d["translation_px"] == pytest.approx([-86.0, -36.0], abs=0.5)
+
+
+def test_align_json_metric_uses_the_yaml_frames(runs, sample_maps):
+    """x, y, yaw, scale: b's map frame in a's, from the YAMLs' resolutions and origins."""
+    a, b, truth = sample_maps.a, sample_maps.b, sample_maps.truth
+    m = parse_json(runs.get("align-json").result)["metric"]
+    assert set(m) == {"x", "y", "yaw", "scale"}
+    # b's cells are 0.95 of a's and the pixel scale is 0.95: the world has one size.
+    assert m["scale"] == pytest.approx(1.0, abs=0.002)
+    # +30 deg between the images (rows down) is -30 deg between the map frames (y up);
+    # then b's frame is turned by its origin's yaw, a's by its own.
+    expected_yaw = a.origin[2] - math.radians(30.0) - b.origin[2]
+    assert m["yaw"] == pytest.approx(expected_yaw, abs=math.radians(0.1))
+    # (x, y): where the origin of b's map frame lies in a's map frame.
+    origin_b_in_a = a.pixel_to_metric(b.metric_to_pixel([[0.0, 0.0]]) @ truth[:2, :2].T + truth[:2, 2])[0]
+    assert [m["x"], m["y"]] == pytest.approx(origin_b_in_a.tolist(), abs=0.5 * a.resolution)
+    err = metric_error(m, a, b, truth)
+    assert err < 0.5 * a.resolution, f"metric error {err:.4f} m"
+
+
+def test_align_text(runs):
+    proc = runs.get("align-text").result
+    assert proc.returncode == 0, describe(proc)
+    assert proc.stderr == ""
+    assert not proc.stdout.lstrip().startswith("{")
+    found = re.search(r"rotation (-?[\d.]+) deg, scale ([\d.]+)", proc.stdout)
+    assert found, proc.stdout
+    assert float(found.group(1)) == pytest.approx(30.0, abs=0.1)
+    assert float(found.group(2)) == pytest.approx(0.95, abs=0.002)
+    assert re.search(r"metric .*scale 1\.00", proc.stdout), proc.stdout
+    assert "inliers" in proc.stdout and "confidence" in proc.stdout
+
+
+def test_align_paper_method(runs, sample_maps):
+    proc = runs.get("align-paper").result
+    assert proc.returncode == 0, describe(proc)
+    d = parse_json(proc)
+    assert d["success"] is True and d["method"] == "paper"
+    assert d["scale_x"] == pytest.approx(0.95, abs=0.005)
+    assert d["scale_y"] == pytest.approx(0.95, abs=0.005)
+    assert d["rotation_deg"] == pytest.approx(30.0, abs=0.3)
+    err = corner_error(d["matrix"], sample_maps.truth, sample_maps.b.shape)
+    assert err < 2.0, f"corner error {err:.3f} px"
+    assert metric_error(d["metric"], sample_maps.a, sample_maps.b, sample_maps.truth) < 2.0 * sample_maps.a.resolution
+
+
+def test_align_negative_pair_declines(runs):
+    proc = runs.get("align-negative").result
+    assert proc.returncode == 1, describe(proc)
+    assert proc.stderr == ""
+    d = parse_json(proc)
+    assert d["success"] is False
+    assert d["matrix"] is None and d["metric"] is None and d["translation_px"] is None
+    assert d["message"]
+
+
+def test_align_leaves_the_inputs_alone(runs, sample_maps):
+    for key in ("align-json", "align-text", "align-paper", "align-negative"):
+        runs.get(key)
+    assert snapshot(sample_maps.folder) == runs.jobs["align-json"].before
+
+
+# ----------------------------------------------------------------------- merge
+def test_merge_json(runs, sample_maps):
+    job = runs.get("merge")
+    proc = job.result
+    assert proc.returncode == 0, describe(proc)
+    assert proc.stderr == ""
+    d = parse_json(proc)
+    assert d["success"] is True and d["fusion"] == "average"
+    assert d["output"] == "out.yaml"
+    assert d["unplaced"] == []
+    assert [m["name"] for m in d["maps"]] == ["a.yaml", "b.yaml"]
+    assert all(m["placed"] for m in d["maps"])
+    assert d["maps"][1]["parent"] == 0
+    assert d["maps"][1]["rotation_deg"] == pytest.approx(30.0, abs=0.1)
+    # The merged map is in a's metric frame, so b's pose there is its pose in a.
+    err = metric_error(d["maps"][1]["metric"], sample_maps.a, sample_maps.b, sample_maps.truth)
+    assert err < 0.5 * sample_maps.a.resolution
+    merged = load_map(job.cwd / "out.yaml")
+    assert d["merged"]["width"] == merged.width and d["merged"]["height"] == merged.height
+    assert d["merged"]["resolution"] == pytest.approx(merged.resolution)
+    assert d["merged"]["origin"] == pytest.approx(list(merged.origin))
+
+
+def test_merge_files(runs, sample_maps):
+    job = runs.get("merge")
+    assert job.result.returncode == 0, describe(job.result)
+    # Exactly the outputs were added (no temporary file left), the inputs are unchanged.
+    after = snapshot(job.cwd)
+    assert set(after) == set(job.before) | {"out.yaml", "out.pgm", "p.png"}
+    assert {k: after[k] for k in job.before} == job.before
+    text = (job.cwd / "out.yaml").read_text()
+    assert "image: out.pgm" in text and "mode: trinary" in text
+    assert (job.cwd / "out.pgm").read_bytes().startswith(b"P5")
+    merged = load_map(job.cwd / "out.yaml")
+    a = sample_maps.a
+    assert merged.resolution == a.resolution  # the reference's, from its YAML
+    assert merged.origin[2] == pytest.approx(a.origin[2])
+    # b reaches beyond a's image (its top-left corner lands at (-86, -36) in a).
+    assert merged.height > a.height and merged.width > a.width
+    pixels = set(np.unique(cv2.imread(str(job.cwd / "out.pgm"), cv2.IMREAD_UNCHANGED)).tolist())
+    assert pixels <= {0, 205, 254}  # map_saver's trinary values
+
+
+def test_merge_keeps_a_in_place(runs, sample_maps):
+    job = runs.get("merge")
+    assert job.result.returncode == 0, describe(job.result)
+    check_a_kept(load_map(job.cwd / "out.yaml"), sample_maps.a)
+
+
+def test_merge_plot_is_png(runs):
+    job = runs.get("merge")
+    assert job.result.returncode == 0, describe(job.result)
+    data = (job.cwd / "p.png").read_bytes()
+    assert data.startswith(PNG_SIGNATURE)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img is not None and img.shape[0] > 100 and img.shape[1] > 100
+
+
+@pytest.mark.parametrize("fusion", OTHER_FUSIONS)
+def test_merge_fusion_rules(fusion, runs, sample_maps):
+    job = runs.get(f"fusion-{fusion}")
+    assert job.result.returncode == 0, describe(job.result)
+    d = parse_json(job.result)
+    assert d["success"] is True and d["fusion"] == fusion
+    check_a_kept(load_map(job.cwd / "out.yaml"), sample_maps.a)
+
+
+def test_merge_save_mode_raw(runs, sample_maps):
+    job = runs.get("merge-raw")
+    proc = job.result
+    assert proc.returncode == 0, describe(proc)
+    assert proc.stderr == ""
+    assert "wrote out.yaml" in proc.stdout
+    assert "mode: raw" in (job.cwd / "out.yaml").read_text()
+    values = set(np.unique(cv2.imread(str(job.cwd / "out.pgm"), cv2.IMREAD_UNCHANGED)).tolist())
+    assert values <= set(range(101)) | {255}
+    assert 255 in values and values & set(range(1, 100))  # unknown and blended cells
+    merged = load_map(job.cwd / "out.yaml")
+    assert ((merged.data > 0) & (merged.data < 1)).any()
+    check_a_kept(merged, sample_maps.a)
+
+
+def test_merge_force_overwrites(runs, sample_maps):
+    """With --force an existing output is replaced (without it: see test_bad_input)."""
+    job = runs.get("merge-force")
+    assert job.result.returncode == 0, describe(job.result)
+    after = snapshot(job.cwd)
+    assert set(after) == set(job.before)  # replaced in place, no temporary file left
+    assert after["out.yaml"] != job.before["out.yaml"] and after["out.pgm"] != job.before["out.pgm"]
+    assert {k: after[k] for k in ("a.yaml", "a.pgm", "b.yaml", "b.pgm")} == {
+        k: job.before[k] for k in ("a.yaml", "a.pgm", "b.yaml", "b.pgm")
+    }
+    assert load_map(job.cwd / "out.yaml").resolution == sample_maps.a.resolution
+
+
+def test_merge_negative_pair_writes_nothing(runs):
+    job = runs.get("merge-negative")
+    proc = job.result
+    assert proc.returncode == 1, describe(proc)
+    assert proc.stderr == ""
+    assert proc.stdout.startswith("not merged")
+    assert snapshot(job.cwd) == job.before  # no output, no plot, no temporary file
+
+
+def test_merge_all_unknown_map_declines(runs):
+    """A map without a single known cell is valid input with nothing to align: declined
+    (exit 1), not bad input, and nothing is written."""
+    job = runs.get("merge-unknown")
+    assert job.result.returncode == 1, describe(job.result)
+    assert "Traceback" not in job.result.stderr
+    d = parse_json(job.result)
+    assert d["success"] is False and d["output"] is None
+    assert snapshot(job.cwd) == job.before
+
+
+# ------------------------------------------------------------------ bad input
+@pytest.mark.parametrize("key, expected", [(c[0], c[3]) for c in BAD_INPUT], ids=[c[0] for c in BAD_INPUT])
+def test_bad_input(key, expected, runs):
+    job = runs.get(f"bad-{key}")
+    assert_one_line_error(job.result, 2, expected)
+    # Inputs byte-identical, no output, no temporary file.
+    assert snapshot(job.cwd) == job.before
+
+
+def test_debug_shows_traceback(runs):
+    job = runs.get("debug")
+    proc = job.result
+    assert proc.returncode == 2, describe(proc)
+    assert "Traceback (most recent call last)" in proc.stderr
+    assert proc.stderr.splitlines()[-1].startswith("gridmerge: error: ")
+    assert "missing.yaml" in proc.stderr.splitlines()[-1]
+    assert snapshot(job.cwd) == job.before
