@@ -47,7 +47,7 @@ from .refine import refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 from .verify import Verification, verify
 
-__all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "default_extractor"]
+__all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor"]
 
 
 @dataclass(frozen=True)
@@ -277,7 +277,27 @@ def default_extractor(options: AlignOptions | None = None) -> FeatureExtractor:
 
 # ---------------------------------------------------------------- estimators
 @dataclass
-class _Estimate:
+class Estimate:
+    """What a method's estimator returns to :func:`align`.
+
+    Attributes
+    ----------
+    transform : AffineTransform or None
+        b's cropped-map pixels -> a's cropped-map pixels (the maps given to the estimator).
+    inliers : (N,) bool array
+        Which correspondences support ``transform``.
+    src, dst : (N, 2) float arrays
+        The correspondences (b's points, a's points).
+    message : str
+        Why no transform was found (when ``transform`` is None).
+    details : dict
+        JSON-ready diagnostics.
+    verification : Verification, optional
+        The estimator's own verification of ``transform``, reused by :func:`align`.
+    success, confidence : bool, float, optional
+        The decision of a method that judges itself (``Method.verified`` is False).
+    """
+
     transform: AffineTransform | None
     inliers: np.ndarray
     src: np.ndarray
@@ -285,6 +305,41 @@ class _Estimate:
     message: str = ""
     details: dict = field(default_factory=dict)
     verification: Verification | None = None
+    success: bool | None = None
+    confidence: float | None = None
+
+
+
+
+@dataclass(frozen=True)
+class Method:
+    """An alignment method for :func:`align`.
+
+    Attributes
+    ----------
+    name : str
+    estimate : callable
+        ``estimate(a, b, features_a, features_b, options, rng) -> Estimate``.
+    extractor : callable or None
+        ``extractor(options) -> FeatureExtractor``; ``None`` for methods that use no keypoints.
+    verified : bool
+        ``True``: gridmerge's verification decides success (our methods). ``False``: the
+        method decides by its own rule (baselines, reproduced as their authors wrote them);
+        the verification is still computed and reported.
+    description : str
+    """
+
+    name: str
+    estimate: Callable
+    extractor: Callable[[AlignOptions], FeatureExtractor] | None = None
+    verified: bool = True
+    description: str = ""
+
+
+def register_method(method: Method) -> Method:
+    """Make ``method`` available to :func:`align`, :func:`gridmerge.merge` and the CLI by name."""
+    METHODS[method.name] = method
+    return method
 
 
 def _scale_ok(opts: AlignOptions) -> Callable[[AffineTransform], bool]:
@@ -300,12 +355,12 @@ def _correspondences(fa: Features, fb: Features, pairs: np.ndarray):
     return fb.xy[pairs[:, 1]], fa.xy[pairs[:, 0]]
 
 
-def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
+def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     matcher = match_smnn if opts.mutual else match_snn
     _, pairs = matcher(fa.descriptors, fb.descriptors, ratio=opts.ratio, method=opts.matcher)
     src, dst = _correspondences(fa, fb, pairs)
     if len(src) < 2:
-        return _Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
+        return Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
     model, inl = ransac(
         (src, dst),
         SimilarityTransform,
@@ -316,7 +371,7 @@ def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
         is_model_valid=_scale_ok(opts),
     )
     if model is None:
-        return _Estimate(None, inl, src, dst, "no consistent transform among the matches")
+        return Estimate(None, inl, src, dst, "no consistent transform among the matches")
     details: dict = {}
     if opts.refine and inl.sum() >= 2:
         refined, report = refine_direct(a, b, model, rng=rng)
@@ -329,10 +384,10 @@ def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
         if report.accepted:
             model = refined
             inl = model.residuals(src, dst) < opts.residual_threshold
-    return _Estimate(model, inl, src, dst, details=details)
+    return Estimate(model, inl, src, dst, details=details)
 
 
-def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
+def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     # Every keypoint of a gets its k nearest neighbours in b: on real maps the right
     # match is often not the nearest, and the ratio test would throw it away.
     dists, idxs = knn(fa.descriptors, fb.descriptors, opts.neighbours, method=opts.matcher)
@@ -340,7 +395,7 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
     pairs = np.stack([ia, idxs[ia, rank]], axis=1)
     src, dst = _correspondences(fa, fb, pairs)
     if len(src) < 2:
-        return _Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
+        return Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
     angle = np.deg2rad(fa.angle[pairs[:, 0]] - fb.angle[pairs[:, 1]])
     scale = fa.size[pairs[:, 0]] / np.maximum(fb.size[pairs[:, 1]], 1e-9)
     hyps = similarity_hypotheses(
@@ -351,7 +406,7 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
         max_scale=opts.max_scale,
     )
     if not hyps:
-        return _Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches")
+        return Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches")
     def score(model, inl, support):
         v = verify(a, b, model, tolerance=opts.wall_tolerance)
         wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
@@ -376,22 +431,25 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
         ],
         "runner_up_ratio": (scored[1][0] / best[0]) if len(scored) > 1 and best[0] > 0 else 0.0,
     }
-    return _Estimate(best[1], best[2], src, dst, details=details, verification=best[3])
+    return Estimate(best[1], best[2], src, dst, details=details, verification=best[3])
 
 
-def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> _Estimate:
+def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     _, pairs = match_nn(fa.descriptors, fb.descriptors, method=opts.matcher)
     src, dst = _correspondences(fa, fb, pairs)
     model, report = paper_consensus(src, dst, rng=rng, n_samples=opts.paper_samples, min_scale=opts.min_scale, max_scale=opts.max_scale)
     details = {"samples": report.samples, "cluster_size": report.cluster_size}
     if model is None:
-        return _Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches", details)
+        return Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches", details)
     inl = model.residuals(src, dst) < opts.residual_threshold
-    return _Estimate(model, inl, src, dst, details=details)
+    return Estimate(model, inl, src, dst, details=details)
 
 
-#: Alignment methods by name: ``f(a, b, features_a, features_b, options, rng) -> _Estimate``.
-METHODS: dict[str, Callable] = {"sift": _estimate_sift, "ransac": _estimate_ransac, "paper": _estimate_paper}
+#: Alignment methods by name (see :class:`Method` and :func:`register_method`).
+METHODS: dict[str, Method] = {}
+register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined (default)"))
+register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
+register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
 
 
 def _evidence(inliers: int, min_samples: int) -> float:
@@ -447,14 +505,15 @@ def align(
     opts = replace(options or AlignOptions(), **overrides)
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     t0 = time.perf_counter()
-    ext = extractor or default_extractor(opts)
+    spec = METHODS[method]
+    ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
-    fa = fa if fa is not None else ext(a)
-    fb = fb if fb is not None else ext(b)
+    fa = fa if fa is not None else (ext(a) if ext is not None else Features.empty())
+    fb = fb if fb is not None else (ext(b) if ext is not None else Features.empty())
     # Work on the known part of each map only: real maps are often mostly unknown.
     ca, oa = _crop_known(a, _CROP_MARGIN)
     cb, ob = _crop_known(b, _CROP_MARGIN)
-    est = METHODS[method](ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen)
+    est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen)
     if est.transform is not None:
         # Back from the crops' pixels to the whole maps' pixels.
         to_full_a = SimilarityTransform(translation=oa)
@@ -468,8 +527,12 @@ def align(
     conf = 0.0
     if est.transform is not None:
         v = est.verification or verify(a, b, est.transform, tolerance=opts.wall_tolerance)
-        conf = _confidence(n_inl, v, est.transform.min_samples)
-        message = _decline_reason(n_inl, v, conf, opts)
+        if spec.verified:
+            conf = _confidence(n_inl, v, est.transform.min_samples)
+            message = _decline_reason(n_inl, v, conf, opts)
+        else:
+            conf = float(est.confidence or 0.0)
+            message = "" if est.success else (est.message or "declined by the method's own rule")
     success = est.transform is not None and not message
     details = dict(est.details)
     details["features_capped"] = bool(fa.capped or fb.capped)

@@ -89,6 +89,11 @@ class Features:
         return int(self.xy.shape[0])
 
     @classmethod
+    def empty(cls, binary: bool = False) -> "Features":
+        """No keypoints (for methods that use none)."""
+        return cls.from_cv((), None, binary=binary)
+
+    @classmethod
     def from_cv(
         cls, keypoints: Sequence[cv2.KeyPoint], descriptors, binary: bool, capped: bool = False, offset=(0.0, 0.0)
     ) -> "Features":

@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .align import AlignOptions, AlignResult, align, default_extractor
+from .align import METHODS, AlignOptions, AlignResult, align
 from .errors import GridMergeError
 from .fuse import FUSION_RULES, fuse_values, warp_values
 from .grid import OccupancyGrid
@@ -199,8 +199,11 @@ def merge(
     opts = replace(options or AlignOptions(), **overrides)
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     names = [m.name or f"map{k}" for k, m in enumerate(maps)]
-    extractor = default_extractor(opts)
-    feats = [extractor(m) for m in maps]
+    if method not in METHODS:
+        raise GridMergeError(f"unknown alignment method {method!r} (use one of {', '.join(METHODS)})")
+    spec = METHODS[method]
+    extractor = spec.extractor(opts) if spec.extractor is not None else None
+    feats = [extractor(m) if extractor is not None else None for m in maps]
 
     n = len(maps)
     to_ref: list[AffineTransform | None] = [None] * n
