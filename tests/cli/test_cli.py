@@ -199,30 +199,28 @@ def metric_error(metric: dict, a: OccupancyGrid, b: OccupancyGrid, truth: np.nda
     return float(np.hypot(*(reported - expected).T).max())
 
 
-def check_a_kept(merged: OccupancyGrid, a: OccupancyGrid, seed: int = 0) -> None:
-    """Cells of a far from walls keep their value at the same metric place of the merged map.
+def check_a_kept(merged: OccupancyGrid, a: OccupancyGrid) -> None:
+    """a's cells keep their value at the same metric place of the merged map.
 
-    Free cells whose 7 x 7 neighbourhood is free, and occupied cells whose 3 x 3
-    neighbourhood is occupied, go through a's metric frame into the merged map's pixels;
-    those must fall exactly on cell centres and hold the same occupancy.
+    Cells of a go through a's metric frame into the merged map's pixels, where they must
+    fall exactly on cell centres. Free cells far from walls (7 x 7 neighbourhood free)
+    must be free there, and a's occupied cells occupied: walls are 2-4 cells thick, so a
+    placement one cell off keeps only about 88 % of them.
     """
-    rng = np.random.default_rng(seed)
-    kernel7, kernel3 = np.ones((7, 7), np.uint8), np.ones((3, 3), np.uint8)
-    deep_free = cv2.erode(a.free().astype(np.uint8), kernel7, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    deep_occ = cv2.erode(a.occupied().astype(np.uint8), kernel3, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    assert deep_free.sum() > 1000 and deep_occ.sum() > 100
-    for mask, expected in ((deep_free, 0.0), (deep_occ, 1.0)):
+    deep_free = cv2.erode(a.free().astype(np.uint8), np.ones((7, 7), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+    occupied = a.occupied()
+    assert deep_free.sum() > 1000 and occupied.sum() > 1000
+    for mask, what in ((deep_free, "free cells far from walls"), (occupied, "occupied cells")):
         rows, cols = np.nonzero(mask)
-        pick = rng.choice(len(rows), min(3000, len(rows)), replace=False)
-        px_a = np.stack([cols[pick], rows[pick]], axis=1).astype(float)
+        px_a = np.stack([cols, rows], axis=1).astype(float)
         px_m = merged.metric_to_pixel(a.pixel_to_metric(px_a))
         # The merged map keeps a's cells: same resolution, whole-cell offset.
         assert np.abs(px_m - np.rint(px_m)).max() < 1e-6
         c, r = np.rint(px_m).astype(int).T
         assert (c >= 0).all() and (r >= 0).all() and (c < merged.width).all() and (r < merged.height).all()
         values = merged.data[r, c]
-        agree = np.mean(values == expected) if expected == 0.0 else np.mean(values > 0.65)
-        assert agree >= 0.99, f"only {agree:.1%} of a's deep {'free' if expected == 0 else 'occupied'} cells kept"
+        kept = np.mean(values == 0.0) if mask is deep_free else np.mean(values > 0.65)
+        assert kept >= 0.98, f"only {kept:.1%} of a's {what} kept"
 
 
 # -------------------------------------------------------------- bad-input set-ups
@@ -314,6 +312,9 @@ BAD_INPUT = [
     ("no-command", _nothing, [], "command"),
     ("align-one-map", _nothing, ["align", "a.yaml"], "required"),
     ("merge-without-output", _nothing, ["merge", "a.yaml", "b.yaml"], "-o"),
+    ("sample-exists", _nothing, ["sample", "."], "--force"),
+    ("sample-folder-missing", _nothing, ["sample", "nowhere"], "nowhere"),
+    ("sample-unknown-kind", _mkdir("empty"), ["sample", "empty", "--kind", "moon"], "moon"),
 ]
 
 OTHER_FUSIONS = [f for f in FUSION_RULES if f != "average"]
@@ -352,6 +353,9 @@ def runs(sample_maps, tmp_path_factory):
         f = folder(f"bad-{key}")
         runner.add(f"bad-{key}", args, f, skip=setup(f) or "")
     runner.add("debug", ["merge", "a.yaml", "missing.yaml", "-o", "out.yaml", "--debug"], folder("debug"))
+    f = base / "sample"
+    f.mkdir()
+    runner.add("sample", ["sample", ".", "--kind", "table1"], f)
     runner.add("version", ["--version"], base)
     for args in (["--help"], ["align", "--help"], ["merge", "--help"]):
         runner.add("help-" + "-".join(args), args, base)
@@ -612,3 +616,15 @@ def test_debug_shows_traceback(runs):
     assert proc.stderr.splitlines()[-1].startswith("gridmerge: error: ")
     assert "missing.yaml" in proc.stderr.splitlines()[-1]
     assert snapshot(job.cwd) == job.before
+
+
+# ---------------------------------------------------------------------- sample
+def test_sample_writes_table1_pair(runs, sample_maps):
+    job = runs.get("sample")
+    assert job.result.returncode == 0, describe(job.result)
+    assert job.result.stderr == ""
+    assert set(snapshot(job.cwd)) == {"a.yaml", "a.pgm", "b.yaml", "b.pgm", "truth.json"}
+    truth = np.asarray(json.loads((job.cwd / "truth.json").read_text())["b_to_a"])
+    assert truth == pytest.approx(sample_maps.truth)
+    a, b = load_map(job.cwd / "a.yaml"), load_map(job.cwd / "b.yaml")
+    assert a.shape == sample_maps.a.shape and b.shape == sample_maps.b.shape
