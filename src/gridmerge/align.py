@@ -60,6 +60,10 @@ class AlignOptions:
         Lowe's ratio test threshold (``"ransac"``).
     neighbours : int
         Candidate matches per keypoint of a (``"sift"``).
+    max_matches : int
+        Candidate matches kept at most, the most distinctive first (``"sift"``; bounds time).
+    max_proposals : int
+        Matches that propose a transform, the most distinctive first (``"sift"``).
     hypotheses : int
         Candidate transforms verified against the maps (``"sift"``).
     wall_tolerance : float
@@ -94,6 +98,8 @@ class AlignOptions:
 
     ratio: float = 0.8
     neighbours: int = 3
+    max_matches: int = 6000
+    max_proposals: int = 1500
     hypotheses: int = 6
     wall_tolerance: float = 3.0
     mutual: bool = False
@@ -392,14 +398,24 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     # match is often not the nearest, and the ratio test would throw it away.
     dists, idxs = knn(fa.descriptors, fb.descriptors, opts.neighbours, method=opts.matcher)
     ia, rank = np.nonzero(idxs >= 0)
+    # Distinctiveness of each candidate: its distance over the next neighbour's (Lowe's
+    # ratio for the nearest); 1 when there is no next neighbour.
+    nxt = np.minimum(rank + 1, dists.shape[1] - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(np.isfinite(dists[ia, nxt]) & (nxt > rank), dists[ia, rank] / np.maximum(dists[ia, nxt], 1e-12), 1.0)
+    order = np.argsort(ratio, kind="stable")[: opts.max_matches]
+    ia, rank, ratio = ia[order], rank[order], ratio[order]
     pairs = np.stack([ia, idxs[ia, rank]], axis=1)
     src, dst = _correspondences(fa, fb, pairs)
     if len(src) < 2:
         return Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
     angle = np.deg2rad(fa.angle[pairs[:, 0]] - fb.angle[pairs[:, 1]])
     scale = fa.size[pairs[:, 0]] / np.maximum(fb.size[pairs[:, 1]], 1e-9)
+    # The most distinctive matches propose; every match votes.
+    propose = np.zeros(len(src), dtype=bool)
+    propose[: opts.max_proposals] = True
     hyps = similarity_hypotheses(
-        src, dst, angle, scale,
+        src, dst, angle, scale, proposals=propose,
         threshold=opts.residual_threshold,
         max_hypotheses=opts.hypotheses,
         min_scale=opts.min_scale,

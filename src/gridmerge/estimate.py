@@ -301,6 +301,7 @@ def similarity_hypotheses(
     max_scale: float = 5.0,
     local_iterations: int = 6,
     block: int = 256,
+    proposals: np.ndarray | None = None,
 ):
     """Ranked, distinct similarity hypotheses from oriented keypoint correspondences.
 
@@ -332,6 +333,8 @@ def similarity_hypotheses(
         Least-squares refits per hypothesis at most.
     block : int
         Proposals evaluated at once (bounds memory to ``block * N`` values).
+    proposals : (N,) bool array, optional
+        Which correspondences propose a transform (all by default); every one votes.
 
     Returns
     -------
@@ -346,6 +349,8 @@ def similarity_hypotheses(
     if n < 2:
         return []
     ok = np.isfinite(angle) & np.isfinite(scale) & (scale >= min_scale) & (scale <= max_scale)
+    if proposals is not None:
+        ok &= np.asarray(proposals, dtype=bool)
     cand = np.flatnonzero(ok)
     if len(cand) == 0:
         return []
