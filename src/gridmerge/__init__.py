@@ -40,3 +40,4 @@ __all__ = [
     "OutputError",
     "__version__",
 ]
+from . import baselines as _baselines  # registers the baseline methods
