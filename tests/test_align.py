@@ -79,7 +79,7 @@ def test_simulated_robot_pairs_align_precisely(seed):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
-@pytest.mark.parametrize("method", ["sift", "ransac", "paper"])
+@pytest.mark.parametrize("method", ["hybrid", "sift", "ransac", "paper"])
 def test_maps_of_different_places_are_declined(seed, method):
     a, b = samples.negative_pair(seed)
     r = align(a, b, method=method, rng=seed)
@@ -155,3 +155,17 @@ def test_real_apartment_maps_hih_01_02(shared_data):
     err = np.median(np.hypot(*(r.transform(np.array(pair["points_b"])) - np.array(pair["points_a"])).T))
     # The data set's scoring protocol: within max(20 px, 2 x the hand-fit residual).
     assert err <= max(20.0, 2 * pair["fit_median_residual_px"])
+
+
+@pytest.mark.shared
+def test_real_apartment_maps_all_sensor_pairs_merge_and_none_wrongly(shared_data):
+    pairs = json.loads((shared_data / "halmstad" / "HIH_pairs.json").read_text())["pairs"]
+    maps = {}
+    for pair in (p for p in pairs if p["kind"] == "sensor"):
+        for name in (pair["a"], pair["b"]):
+            if name not in maps:
+                maps[name] = gridmerge.load_map(shared_data / "halmstad" / "HIH" / f"{name}.png")
+        r = align(maps[pair["a"]], maps[pair["b"]])
+        assert r.success, (pair["a"], pair["b"], r.message)
+        err = np.median(np.hypot(*(r.transform(np.array(pair["points_b"])) - np.array(pair["points_a"])).T))
+        assert err <= max(20.0, 2 * pair["fit_median_residual_px"]), (pair["a"], pair["b"], err)

@@ -6,16 +6,28 @@ weak: a wrong merge is worse than no merge.
 
 Methods
 -------
-``"sift"`` (default)
-    SIFT keypoints with the paper's parameters, FLANN matching with Lowe's ratio test,
-    RANSAC (MSAC scoring, local optimisation) for a similarity transform, least squares on
-    the inliers, then sub-pixel refinement against the cells of both maps.
+``"hybrid"`` (default)
+    Candidate transforms from two independent sources: SIFT keypoints (the paper's
+    parameters; each of a keypoint's 3 nearest neighbours is a candidate match, and each
+    match proposes a whole similarity from the keypoints' orientations and sizes), and the
+    maps' walls (wall-direction histograms for the rotation, FFT correlation of wall images
+    for the translation, :mod:`gridmerge.correlate`). All are scored by wall agreement, the
+    best distinct ones refined to sub-pixel precision against the cells of both maps, and
+    the winner's confidence combines its wall agreement with how clearly it beats every
+    clearly different pose (repeated structure makes them close).
+``"sift"``
+    The keypoint candidates alone, verified and refined the same way.
+``"ransac"``
+    SIFT keypoints, FLANN matching with Lowe's ratio test, RANSAC (MSAC scoring, local
+    optimisation) for a similarity transform, least squares on the inliers, then sub-pixel
+    refinement against the cells of both maps.
 ``"paper"``
     The paper as written: SIFT, nearest-neighbour matching by Euclidean distance, and the
     5-parameter transform ``T(dx, dy) R(theta) S(sx, sy)`` as the mean of the cluster of
     similar 3-point solutions. No refinement.
 
-Both are verified the same way (:mod:`gridmerge.verify`).
+All are verified against the maps (:mod:`gridmerge.verify`); baselines registered by
+:mod:`gridmerge.baselines` (``"orb"``, ``"hough"``) decide by their own rules.
 
 Examples
 --------
@@ -45,7 +57,8 @@ from .grid import OccupancyGrid
 from .matching import knn, match_nn, match_smnn, match_snn
 from .refine import refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
-from .verify import Verification, verify
+from .correlate import correlation_hypotheses
+from .verify import Verification, WallScorer, verify
 
 __all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor"]
 
@@ -393,7 +406,8 @@ def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     return Estimate(model, inl, src, dst, details=details)
 
 
-def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
+def _keypoint_hypotheses(fa: Features, fb: Features, opts: AlignOptions):
+    """Similarity hypotheses from oriented keypoint matches, and the matches themselves."""
     # Every keypoint of a gets its k nearest neighbours in b: on real maps the right
     # match is often not the nearest, and the ratio test would throw it away.
     dists, idxs = knn(fa.descriptors, fb.descriptors, opts.neighbours, method=opts.matcher)
@@ -404,11 +418,11 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.where(np.isfinite(dists[ia, nxt]) & (nxt > rank), dists[ia, rank] / np.maximum(dists[ia, nxt], 1e-12), 1.0)
     order = np.argsort(ratio, kind="stable")[: opts.max_matches]
-    ia, rank, ratio = ia[order], rank[order], ratio[order]
+    ia, rank = ia[order], rank[order]
     pairs = np.stack([ia, idxs[ia, rank]], axis=1)
     src, dst = _correspondences(fa, fb, pairs)
     if len(src) < 2:
-        return Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
+        return [], src, dst
     angle = np.deg2rad(fa.angle[pairs[:, 0]] - fb.angle[pairs[:, 1]])
     scale = fa.size[pairs[:, 0]] / np.maximum(fb.size[pairs[:, 1]], 1e-9)
     # The most distinctive matches propose; every match votes.
@@ -421,6 +435,13 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         min_scale=opts.min_scale,
         max_scale=opts.max_scale,
     )
+    return hyps, src, dst
+
+
+def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
+    hyps, src, dst = _keypoint_hypotheses(fa, fb, opts)
+    if len(src) < 2:
+        return Estimate(None, np.zeros(len(src), bool), src, dst, "too few matches")
     if not hyps:
         return Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches")
     def score(model, inl, support):
@@ -450,6 +471,74 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     return Estimate(best[1], best[2], src, dst, details=details, verification=best[3])
 
 
+def _candidate_scales(a: OccupancyGrid, b: OccupancyGrid, hyps, limit: int = 3) -> list[float]:
+    """Scales worth a correlation search: the maps' resolution ratio and the keypoints' best."""
+    scales = [b.resolution / a.resolution]
+    for h in hyps:
+        s = h.transform.scale
+        if len(scales) >= limit:
+            break
+        if all(abs(math.log(s / t)) > math.log(1.03) for t in scales):
+            scales.append(s)
+    return scales
+
+
+def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
+    hyps, src, dst = _keypoint_hypotheses(fa, fb, opts)
+    corr = correlation_hypotheses(a, b, scales=_candidate_scales(a, b, hyps))
+    candidates = [(h.transform, "keypoints") for h in hyps] + [(h.transform, "walls") for h in corr]
+    if not candidates:
+        return Estimate(None, np.zeros(len(src), bool), src, dst, "no candidate transform (no walls, no keypoint matches)")
+    scorer = WallScorer(a, b, tolerance=opts.wall_tolerance)
+    scored = sorted(((scorer(t).wall_agreement, t, kind) for t, kind in candidates), key=lambda c: -c[0])
+    # Refine the most promising distinct candidates against the maps and score them again.
+    box = b.corners()
+    chosen: list[tuple[float, AffineTransform, str]] = []
+    for wall, t, kind in scored:
+        if len(chosen) >= _REFINE_TOP:
+            break
+        if any(np.hypot(*(c(box) - t(box)).T).max() < _SAME_POSE_PX for _, c, _ in chosen):
+            continue
+        if opts.refine:
+            refined, report = refine_direct(a, b, t, rng=rng)
+            if report.accepted:
+                t = refined
+                wall = scorer(t).wall_agreement
+        chosen.append((wall, t, kind))
+    chosen.sort(key=lambda c: -c[0])
+    wall, best, kind = chosen[0]
+    # The best score of a clearly different pose: repeated structure makes it close to the best.
+    def far(t):
+        return np.hypot(*(best(box) - t(box)).T).max() >= _OTHER_POSE_PX
+
+    others = [w for w, t, _ in scored if far(t)] + [w for w, t, _ in chosen[1:] if far(t)]
+    runner_up = max(others, default=0.0)
+    inl = best.residuals(src, dst) < opts.residual_threshold if len(src) else np.zeros(0, bool)
+    confidence = _structural_confidence(wall, runner_up)
+    details = {
+        "source": kind,
+        "candidates": len(candidates),
+        "wall_agreement_quick": round(wall, 4),
+        "runner_up": round(runner_up, 4),
+        "runner_up_ratio": round(runner_up / wall, 4) if wall > 0 else 1.0,
+    }
+    return Estimate(best, inl, src, dst, details=details, confidence=confidence)
+
+
+def _structural_confidence(wall: float, runner_up: float) -> float:
+    """Confidence from the maps' structure: how well walls agree, and how clearly the
+    chosen pose beats every clearly different pose (repeated corridors make them close).
+
+    Both terms are 0 at worst and 1 at best; a wall agreement of 0.5 or a runner-up at
+    90 % of the best score each halve the confidence. Calibrated on the Halmstad maps
+    (docs/benchmarks.md): at 0.5, no wrong merge beyond 40 px there.
+    """
+    w = min(1.0, max(0.0, (wall - 0.25) / 0.5))
+    ratio = runner_up / wall if wall > 0 else 1.0
+    d = min(1.0, max(0.0, (1.0 - ratio) / 0.2))
+    return math.sqrt(w * d)
+
+
 def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     _, pairs = match_nn(fa.descriptors, fb.descriptors, method=opts.matcher)
     src, dst = _correspondences(fa, fb, pairs)
@@ -463,6 +552,7 @@ def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 
 #: Alignment methods by name (see :class:`Method` and :func:`register_method`).
 METHODS: dict[str, Method] = {}
+register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined"))
 register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined (default)"))
 register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
 register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
@@ -486,7 +576,7 @@ def align(
     a: OccupancyGrid,
     b: OccupancyGrid,
     *,
-    method: str = "sift",
+    method: str = "hybrid",
     options: AlignOptions | None = None,
     rng=0,
     features: tuple[Features | None, Features | None] | None = None,
@@ -499,8 +589,9 @@ def align(
     ----------
     a, b : OccupancyGrid
         The maps; ``a`` is the reference.
-    method : {"sift", "paper"}
-        See the module's documentation.
+    method : str
+        ``"hybrid"`` (default), ``"sift"``, ``"ransac"``, ``"paper"`` or a registered
+        baseline; see the module's documentation.
     options : AlignOptions, optional
         Settings; keyword ``overrides`` change single fields (``align(a, b, ratio=0.7)``).
     rng : int or numpy.random.Generator
@@ -544,8 +635,9 @@ def align(
     if est.transform is not None:
         v = est.verification or verify(a, b, est.transform, tolerance=opts.wall_tolerance)
         if spec.verified:
-            conf = _confidence(n_inl, v, est.transform.min_samples)
-            message = _decline_reason(n_inl, v, conf, opts)
+            by_structure = est.confidence is not None
+            conf = float(est.confidence) if by_structure else _confidence(n_inl, v, est.transform.min_samples)
+            message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure)
         else:
             conf = float(est.confidence or 0.0)
             message = "" if est.success else (est.message or "declined by the method's own rule")
@@ -575,6 +667,10 @@ def align(
 _CROP_MARGIN = 8
 #: Hypotheses refined against the maps (the best by their unrefined score).
 _REFINE_TOP = 3
+#: Two candidate transforms closer than this (b's corners, a's pixels) are one pose.
+_SAME_POSE_PX = 10.0
+#: ... and farther than this, two clearly different poses (for the ambiguity check).
+_OTHER_POSE_PX = 40.0
 
 
 def _crop_known(grid: OccupancyGrid, margin: int) -> tuple[OccupancyGrid, np.ndarray]:
@@ -594,8 +690,8 @@ def _shifted(f: Features, offset: np.ndarray) -> Features:
     return f if not offset.any() else replace(f, xy=f.xy + offset)
 
 
-def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions) -> str:
-    if inliers < opts.min_inliers:
+def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool = True) -> str:
+    if need_inliers and inliers < opts.min_inliers:
         return f"declined: only {inliers} inlier matches (need {opts.min_inliers})"
     if v.overlap_cells < opts.min_overlap_cells:
         return f"declined: the maps share only {v.overlap_cells} known cells (need {opts.min_overlap_cells})"

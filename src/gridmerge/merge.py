@@ -149,7 +149,7 @@ def canvas_for(shapes: Sequence[tuple[int, int]], transforms: Sequence[AffineTra
 def merge(
     maps: Sequence[OccupancyGrid],
     *,
-    method: str = "sift",
+    method: str = "hybrid",
     fusion: str = "average",
     reference: int = 0,
     options: AlignOptions | None = None,

@@ -51,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
         help=f"resolution (m/cell) of maps given as bare images or .npy (default {DEFAULT_RESOLUTION}); "
         "a map_server YAML keeps its own",
     )
-    common.add_argument("--method", choices=sorted(METHODS), default="sift", help="alignment method (default: sift)")
+    common.add_argument("--method", choices=sorted(METHODS), default="hybrid", help="alignment method (default: hybrid)")
     common.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
     common.add_argument("--json", action="store_true", help="print the result as one JSON object")
 
