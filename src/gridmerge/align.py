@@ -452,9 +452,10 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     # Verify every hypothesis as it is, then refine only the most promising ones.
     scored = sorted((score(h.transform, h.inliers, h.support) for h in hyps), key=lambda t: -t[0])
     if opts.refine:
+        fields: dict = {}
         for k in range(min(_REFINE_TOP, len(scored))):
             _, model, inl, _, support = scored[k]
-            refined, report = refine_direct(a, b, model, rng=rng)
+            refined, report = refine_direct(a, b, model, rng=rng, cache=fields)
             if report.accepted:
                 scored[k] = score(refined, refined.residuals(src, dst) < opts.residual_threshold, support)
     scored.sort(key=lambda t: -t[0])
@@ -494,13 +495,14 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     # Refine the most promising distinct candidates against the maps and score them again.
     box = b.corners()
     chosen: list[tuple[float, AffineTransform, str]] = []
+    fields: dict = {}
     for wall, t, kind in scored:
         if len(chosen) >= _REFINE_TOP:
             break
         if any(np.hypot(*(c(box) - t(box)).T).max() < _SAME_POSE_PX for _, c, _ in chosen):
             continue
         if opts.refine:
-            refined, report = refine_direct(a, b, t, rng=rng)
+            refined, report = refine_direct(a, b, t, rng=rng, cache=fields)
             if report.accepted:
                 t = refined
                 wall = scorer(t).wall_agreement

@@ -40,8 +40,13 @@ def _as_descriptors(d, binary: bool) -> np.ndarray:
     return np.ascontiguousarray(arr, dtype=np.uint8 if binary else np.float32)
 
 
-def knn(desc1, desc2, k: int = 2, *, method: str = "flann", binary: bool | None = None, trees: int = 4, checks: int = 128):
+def knn(
+    desc1, desc2, k: int = 2, *, method: str = "flann", binary: bool | None = None, trees: int = 4, checks: int = 128, seed: int = 0
+):
     """The ``k`` nearest neighbours in ``desc2`` of each row of ``desc1``.
+
+    FLANN's randomized kd-trees draw from OpenCV's global random generator, which is
+    seeded with ``seed`` just before the index is built, so results are repeatable.
 
     Returns
     -------
@@ -71,6 +76,8 @@ def knn(desc1, desc2, k: int = 2, *, method: str = "flann", binary: bool | None 
     else:
         raise ValueError(f"unknown matching method {method!r} (use 'flann' or 'brute')")
     kk = min(k, d2.shape[0])
+    if method == "flann" and not binary:
+        cv2.setRNGSeed(int(seed))
     for row in matcher.knnMatch(d1, d2, k=kk):
         for c, m in enumerate(row):
             dists[m.queryIdx, c] = m.distance

@@ -63,6 +63,14 @@ def _field(grid: OccupancyGrid, sigma: float):
     return f, gx, gy, sk
 
 
+def _cached(cache: dict | None, key, compute):
+    if cache is None:
+        return compute()
+    if key not in cache:
+        cache[key] = compute()
+    return cache[key]
+
+
 def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Bilinear values of ``img`` at ``(N, 2)`` points (0 outside)."""
     n = len(xy)
@@ -96,6 +104,7 @@ def refine_direct(
     max_points: int = 20000,
     max_shift: float = 12.0,
     rng=0,
+    cache: dict | None = None,
 ) -> tuple[SimilarityTransform, RefineReport]:
     """Refine ``initial`` (b pixels -> a pixels) against the cells of both maps.
 
@@ -114,6 +123,9 @@ def refine_direct(
         A refinement that moves b's corners farther than this (a's pixels) is refused.
     rng : int or numpy.random.Generator
         Seed of the subsampling.
+    cache : dict, optional
+        Smoothed fields from earlier calls on the same two maps (pass the same dict to
+        refine several candidates cheaply).
 
     Returns
     -------
@@ -129,8 +141,10 @@ def refine_direct(
     rms_before = rms_after = math.nan
     for level, sigma_a in enumerate(sigmas):
         scale = math.hypot(p[0, 0], p[1, 0])
-        fa, gxa, gya, ka = _field(a, sigma_a)
-        fb, gxb, gyb, kb = _field(b, max(0.5, sigma_a / max(scale, 1e-6)))
+        sigma_b = max(0.5, sigma_a / max(scale, 1e-6))
+        sigma_b = round(sigma_b * 50) / 50  # 2 % steps, so that nearby scales share a field
+        fa, gxa, gya, ka = _cached(cache, ("a", sigma_a), lambda: _field(a, sigma_a))
+        fb, gxb, gyb, kb = _cached(cache, ("b", sigma_b), lambda: _field(b, sigma_b))
         gmag = np.hypot(gxb, gyb)
         ys, xs = np.nonzero((kb > 0.9) & (gmag > 0.01) & b.known)
         if len(xs) < 20:
