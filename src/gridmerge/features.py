@@ -28,13 +28,15 @@ Examples
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from typing import Protocol, Sequence, runtime_checkable
 
 import cv2
 import numpy as np
 
 from .grid import OccupancyGrid
+from .limits import DEFAULT_LIMITS
 
 __all__ = [
     "Features",
@@ -47,6 +49,7 @@ __all__ = [
     "FeatureExtractor",
     "PAPER_CONTRAST_THRESHOLD",
     "PAPER_EDGE_THRESHOLD",
+    "MIN_IMAGE_SIDE",
 ]
 
 #: The paper's keypoint contrast threshold (III.A.2), passed to OpenCV's SIFT.
@@ -249,20 +252,42 @@ class FeatureExtractor:
         Default :class:`GreyRenderer`.
     max_keypoints : int
         Keep at most this many keypoints (the strongest responses); 0 keeps all. Bounds
-        time and memory on noisy maps.
+        time and memory on noisy maps. Default: :data:`gridmerge.limits.DEFAULT_LIMITS`.
     margin : int
         Features are computed on the bounding box of the known cells grown by this many
         cells (maps are often mostly unknown); coordinates are those of the whole map.
+    max_image_pixels : int
+        Largest image (pixels of that bounding box) given to the detector; 0 for no
+        limit. SIFT's scale space needs about 220 bytes per pixel, so a larger map is
+        detected and described at the reduced resolution that fits (area averaging),
+        and its keypoints are mapped back to the map's pixels. Default:
+        :data:`gridmerge.limits.DEFAULT_LIMITS`.
+
+    Notes
+    -----
+    ``Features.capped`` is ``True`` when either cap changed the result (keypoints
+    dropped, or the image reduced). Images thinner than :data:`MIN_IMAGE_SIDE` pixels
+    have no keypoints (OpenCV's detectors fail on them).
     """
 
-    def __init__(self, detector=None, descriptor=None, renderer=None, max_keypoints: int = 20000, margin: int = 24):
+    def __init__(
+        self,
+        detector=None,
+        descriptor=None,
+        renderer=None,
+        max_keypoints: int = DEFAULT_LIMITS.max_keypoints,
+        margin: int = 24,
+        max_image_pixels: int = DEFAULT_LIMITS.max_feature_pixels,
+    ):
         self.detector = SIFT() if detector is None else detector
         self.descriptor = self.detector if descriptor is None else descriptor
         self.renderer = GreyRenderer() if renderer is None else renderer
         self.max_keypoints = int(max_keypoints)
         self.margin = int(margin)
+        self.max_image_pixels = int(max_image_pixels)
 
     def __call__(self, grid: OccupancyGrid) -> Features:
+        binary = bool(getattr(self.descriptor, "binary", False))
         image, mask = self.renderer(grid)
         x0 = y0 = 0
         rows = np.flatnonzero(grid.known.any(1))
@@ -272,15 +297,45 @@ class FeatureExtractor:
             x0, x1 = max(0, cols[0] - self.margin), min(grid.width, cols[-1] + 1 + self.margin)
             image = np.ascontiguousarray(image[y0:y1, x0:x1])
             mask = None if mask is None else np.ascontiguousarray(mask[y0:y1, x0:x1])
+        if min(image.shape[:2]) < MIN_IMAGE_SIDE:
+            return Features.empty(binary=binary)
+        image, mask, zoom = _fit_pixels(image, mask, self.max_image_pixels)
         keypoints = list(self.detector.detect(image, mask))
-        capped = False
+        capped = zoom is not None
         if self.max_keypoints and len(keypoints) > self.max_keypoints:
             order = np.argsort([-k.response for k in keypoints], kind="stable")[: self.max_keypoints]
             keypoints = [keypoints[i] for i in sorted(order)]
             capped = True
         keypoints, desc = self.descriptor.compute(image, keypoints)
-        binary = bool(getattr(self.descriptor, "binary", False))
-        return Features.from_cv(keypoints or (), desc, binary=binary, capped=capped, offset=(x0, y0))
+        if zoom is None:
+            return Features.from_cv(keypoints or (), desc, binary=binary, capped=capped, offset=(x0, y0))
+        feats = Features.from_cv(keypoints or (), desc, binary=binary, capped=capped)
+        # Back from the reduced image's pixels (centres at integers) to the map's.
+        zx, zy = zoom
+        xy = (feats.xy + 0.5) * np.array([zx, zy]) - 0.5 + np.array([x0, y0], dtype=float)
+        return replace(feats, xy=xy, size=feats.size * math.sqrt(zx * zy))
 
     def __repr__(self) -> str:
-        return f"FeatureExtractor(detector={self.detector!r}, renderer={self.renderer!r}, max_keypoints={self.max_keypoints})"
+        return (
+            f"FeatureExtractor(detector={self.detector!r}, renderer={self.renderer!r}, "
+            f"max_keypoints={self.max_keypoints}, max_image_pixels={self.max_image_pixels})"
+        )
+
+
+#: Images with fewer rows or columns than this have no keypoints.
+MIN_IMAGE_SIDE = 3
+
+
+def _fit_pixels(image: np.ndarray, mask, max_pixels: int):
+    """``image`` (and ``mask``) reduced to at most ``max_pixels`` pixels, and the zoom
+    ``(zx, zy)`` from the reduced pixels to the original ones (``None`` if unchanged)."""
+    h, w = image.shape[:2]
+    if not max_pixels or h * w <= max_pixels:
+        return image, mask, None
+    f = math.sqrt(h * w / max_pixels)
+    nw, nh = max(1, int(w / f)), max(1, int(h / f))
+    while nw * nh > max_pixels:  # rounding
+        nw, nh = max(1, nw - 1), max(1, nh - 1)
+    small = cv2.resize(image, (nw, nh), interpolation=cv2.INTER_AREA)
+    small_mask = None if mask is None else cv2.resize(mask, (nw, nh), interpolation=cv2.INTER_NEAREST)
+    return small, small_mask, (w / nw, h / nh)

@@ -24,14 +24,16 @@ from .align import METHODS, AlignOptions, AlignResult, align
 from .errors import GridMergeError
 from .fuse import FUSION_RULES, fuse_values, warp_values
 from .grid import OccupancyGrid
+from .limits import DEFAULT_LIMITS, Limits, extractor_for
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 
-__all__ = ["MergeResult", "merge", "canvas_for", "MAX_CANVAS_FACTOR", "MAX_CANVAS_CELLS"]
+__all__ = ["MergeResult", "merge", "canvas_for", "canvas_problem", "MAX_CANVAS_FACTOR", "MAX_CANVAS_CELLS"]
 
-#: A merged canvas may hold at most this many times the cells of all inputs together.
-MAX_CANVAS_FACTOR = 16.0
-#: ... and never more than this many cells (about 1.6 GB as float32).
-MAX_CANVAS_CELLS = 400_000_000
+#: A merged canvas may hold at most this many times the cells of all inputs together
+#: (:data:`gridmerge.limits.DEFAULT_LIMITS`).
+MAX_CANVAS_FACTOR = DEFAULT_LIMITS.max_canvas_factor
+#: ... and never more than this many cells (fusing two maps takes about 40 bytes per cell).
+MAX_CANVAS_CELLS = DEFAULT_LIMITS.max_canvas_cells
 
 
 @dataclass
@@ -146,6 +148,36 @@ def canvas_for(shapes: Sequence[tuple[int, int]], transforms: Sequence[AffineTra
     return (h + top + bottom, w + left + right), (left, top, bottom)
 
 
+def canvas_problem(
+    shapes: Sequence[tuple[int, int]],
+    transforms: Sequence[AffineTransform],
+    reference_shape: tuple[int, int],
+    *,
+    input_cells: int,
+    max_canvas_cells: int,
+    max_canvas_factor: float,
+) -> str:
+    """Why the canvas of these placed maps must not be allocated, or ``""``.
+
+    Decided from the transforms alone, before anything is allocated: every transform
+    must be finite and invertible, and the canvas may hold at most
+    ``min(max_canvas_cells, max_canvas_factor * input_cells)`` cells.
+    """
+    for t in transforms:
+        m = np.asarray(t.params, dtype=float)
+        if not np.isfinite(m).all():
+            return "declined: a map's transform is not finite"
+        # A map shrunk to (almost) nothing: the warp cannot invert its transform.
+        if not abs(float(np.linalg.det(m[:2, :2]))) > 1e-12:
+            return "declined: a map's transform is degenerate (scale of almost 0)"
+    (ch, cw), _ = canvas_for(shapes, transforms, reference_shape)
+    limit = min(int(max_canvas_cells), math.floor(max_canvas_factor * input_cells))
+    if ch * cw > limit:
+        which = "max_canvas_cells" if limit == int(max_canvas_cells) else "max_canvas_factor"
+        return f"declined: the merged map would have {ch} x {cw} cells, more than the limit of {limit} ({which})"
+    return ""
+
+
 def merge(
     maps: Sequence[OccupancyGrid],
     *,
@@ -155,8 +187,9 @@ def merge(
     options: AlignOptions | None = None,
     rng=0,
     interpolation: str = "linear",
-    max_canvas_factor: float = MAX_CANVAS_FACTOR,
-    max_canvas_cells: int = MAX_CANVAS_CELLS,
+    max_canvas_factor: float | None = None,
+    max_canvas_cells: int | None = None,
+    limits: Limits | None = None,
     **overrides,
 ) -> MergeResult:
     """Merge two or more maps into the frame of ``maps[reference]``.
@@ -181,8 +214,14 @@ def merge(
         Seed of every random choice.
     interpolation : {"linear", "nearest"}
         Resampling of the warped maps.
-    max_canvas_factor, max_canvas_cells : float, int
-        The merge is declined when the merged canvas would exceed either bound.
+    max_canvas_factor, max_canvas_cells : float, int, optional
+        The merge is declined when the merged canvas would hold more than
+        ``max_canvas_cells`` cells or more than ``max_canvas_factor`` times the cells of
+        all inputs together (defaults from ``limits``). Nothing is allocated then.
+    limits : gridmerge.limits.Limits, optional
+        Default :data:`gridmerge.limits.DEFAULT_LIMITS`. When given, its
+        ``max_keypoints`` and ``max_feature_pixels`` also cap the features of every map
+        (``options.max_keypoints`` is replaced, unless given as a keyword override).
 
     Returns
     -------
@@ -196,13 +235,19 @@ def merge(
         raise GridMergeError(f"unknown fusion rule {fusion!r} (use one of {', '.join(FUSION_RULES)})")
     if not 0 <= reference < len(maps):
         raise GridMergeError(f"reference {reference} is not the index of a map (0..{len(maps) - 1})")
+    lim = (limits or DEFAULT_LIMITS).replace(max_canvas_factor=max_canvas_factor, max_canvas_cells=max_canvas_cells)
+    if limits is not None and "max_keypoints" not in overrides:
+        overrides["max_keypoints"] = limits.max_keypoints
     opts = replace(options or AlignOptions(), **overrides)
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     names = [m.name or f"map{k}" for k, m in enumerate(maps)]
     if method not in METHODS:
         raise GridMergeError(f"unknown alignment method {method!r} (use one of {', '.join(METHODS)})")
     spec = METHODS[method]
-    extractor = spec.extractor(opts) if spec.extractor is not None else None
+    if limits is not None:
+        extractor = extractor_for(method, lim.replace(max_keypoints=opts.max_keypoints), opts)
+    else:
+        extractor = spec.extractor(opts) if spec.extractor is not None else None
     feats = [extractor(m) if extractor is not None else None for m in maps]
 
     n = len(maps)
@@ -222,6 +267,9 @@ def merge(
                     continue
                 tried.add((j, k))
                 r = align(maps[j], maps[k], method=method, options=opts, rng=gen, features=(feats[j], feats[k]), extractor=extractor)
+                if r.success and not np.isfinite(r.transform.params).all():  # type: ignore[union-attr]
+                    # Never composed or warped (see canvas_problem for the other bounds).
+                    r = replace(r, success=False, transform=None, message="declined: the transform is not finite")
                 if alignments[k] is None or r.confidence > alignments[k].confidence:
                     alignments[k] = r
                 if r.success:
@@ -240,17 +288,18 @@ def merge(
         return MergeResult(False, None, transforms=[None] * n, message=f"no two maps could be aligned ({reason})", elapsed_s=time.perf_counter() - t0, **base)
 
     ref = maps[reference]
-    (ch, cw), (left, top, bottom) = canvas_for([maps[k].shape for k in placed], [to_ref[k] for k in placed], ref.shape)  # type: ignore[misc]
-    limit = min(float(max_canvas_cells), max_canvas_factor * sum(m.data.size for m in maps))
-    if ch * cw > limit:
-        return MergeResult(
-            False,
-            None,
-            transforms=[None] * n,
-            message=f"declined: the merged map would have {ch} x {cw} cells, more than the limit of {int(limit)}",
-            elapsed_s=time.perf_counter() - t0,
-            **base,
-        )
+    shapes, placed_transforms = [maps[k].shape for k in placed], [to_ref[k] for k in placed]
+    problem = canvas_problem(
+        shapes,
+        placed_transforms,  # type: ignore[arg-type]
+        ref.shape,
+        input_cells=sum(m.data.size for m in maps),
+        max_canvas_cells=lim.max_canvas_cells,
+        max_canvas_factor=lim.max_canvas_factor,
+    )
+    if problem:
+        return MergeResult(False, None, transforms=[None] * n, message=problem, elapsed_s=time.perf_counter() - t0, **base)
+    (ch, cw), (left, top, bottom) = canvas_for(shapes, placed_transforms, ref.shape)  # type: ignore[arg-type]
     shift = SimilarityTransform(translation=(left, top))
     transforms: list[AffineTransform | None] = [None if t is None else shift @ t for t in to_ref]
     layers = [warp_values(maps[k].data, transforms[k].params, (ch, cw), interpolation=interpolation) for k in placed]  # type: ignore[union-attr]

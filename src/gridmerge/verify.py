@@ -138,11 +138,16 @@ class QuickScore:
         Share of b's known cells that land on a's known cells.
     walls_compared : int
         Wall cells that landed on known cells of the other map (both directions).
+    consistency : float
+        Symmetric share, among wall cells landing near the other map's walls or on its free
+        space away from walls, of those near walls: walls seen from different sides or
+        missing in one map do not lower it, walls across the other map's rooms do.
     """
 
     wall_agreement: float
     overlap: float
     walls_compared: int
+    consistency: float = 0.0
 
 
 class WallScorer:
@@ -164,8 +169,10 @@ class WallScorer:
     def __init__(self, a: OccupancyGrid, b: OccupancyGrid, *, tolerance: float = 2.0, max_points: int = 20000):
         self.tolerance = float(tolerance)
         self._maps = []
+        self._free = []
         for g in (a, b):
             walls = g.occupied()
+            self._free.append(g.free())
             dist = cv2.distanceTransform((~walls).astype(np.uint8), cv2.DIST_L2, 3) if walls.any() else np.full(g.shape, np.inf, np.float32)
             ys, xs = np.nonzero(walls)
             step = max(1, len(xs) // max_points)
@@ -181,23 +188,30 @@ class WallScorer:
             )
 
     @staticmethod
-    def _lookup(points: np.ndarray, known: np.ndarray, dist: np.ndarray, tol: float):
+    def _lookup(points: np.ndarray, known: np.ndarray, dist: np.ndarray, tol: float, free: np.ndarray | None = None):
         h, w = known.shape
         p = np.rint(points).astype(np.int64)
         inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
         p = p[inside]
         on_known = known[p[:, 1], p[:, 0]]
-        near = dist[p[:, 1], p[:, 0]][on_known] <= tol
-        return int(on_known.sum()), int(near.sum())
+        d = dist[p[:, 1], p[:, 0]]
+        near = d[on_known] <= tol
+        if free is None:
+            return int(on_known.sum()), int(near.sum())
+        conflict = int(np.count_nonzero(free[p[:, 1], p[:, 0]] & (d > tol)))
+        return int(on_known.sum()), int(near.sum()), conflict
 
     def __call__(self, transform: AffineTransform) -> QuickScore:
         (ka, da, wa, pa), (kb, db, wb, pb) = self._maps
         inv = np.linalg.inv(transform.params)
         scale = math.sqrt(abs(float(np.linalg.det(transform.params[:2, :2])))) or 1.0
-        n_ab, good_ab = self._lookup(wb @ transform.params[:2, :2].T + transform.params[:2, 2], ka, da, self.tolerance)
-        n_ba, good_ba = self._lookup(wa @ inv[:2, :2].T + inv[:2, 2], kb, db, self.tolerance / scale)
+        fa, fb = self._free
+        n_ab, good_ab, bad_ab = self._lookup(wb @ transform.params[:2, :2].T + transform.params[:2, 2], ka, da, self.tolerance, fa)
+        n_ba, good_ba, bad_ba = self._lookup(wa @ inv[:2, :2].T + inv[:2, 2], kb, db, self.tolerance / scale, fb)
         shares = [g / n for g, n in ((good_ab, n_ab), (good_ba, n_ba)) if n > 0]
         wall = float(np.mean(shares)) if shares else 0.0
+        cons = [g / (g + c) for g, c in ((good_ab, bad_ab), (good_ba, bad_ba)) if g + c > 0]
+        consistency = float(np.mean(cons)) if cons else 0.0
         landed, _ = self._lookup(pb @ transform.params[:2, :2].T + transform.params[:2, 2], ka, np.zeros_like(da), 0.0)
         overlap = landed / len(pb) if len(pb) else 0.0
-        return QuickScore(wall, overlap, n_ab + n_ba)
+        return QuickScore(wall, overlap, n_ab + n_ba, consistency)

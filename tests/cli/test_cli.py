@@ -407,7 +407,7 @@ def test_align_json_success(runs):
     d = parse_json(proc)
     assert ALIGN_KEYS <= d.keys()
     assert d["success"] is True
-    assert d["method"] == "sift"
+    assert d["method"] == "hybrid"  # the default method
     assert isinstance(d["inliers"], int) and d["inliers"] >= 8
     assert 0.5 <= d["confidence"] <= 1.0
     assert 0.7 <= d["acceptance_index"] <= 1.0

@@ -1,26 +1,32 @@
 """The ``gridmerge`` command: a thin layer that parses arguments and calls the library.
 
 Exit codes: 0 done, 1 declined (the maps could not be aligned confidently), 2 bad input
-or usage (one line on stderr; the traceback only with ``--debug``), 130 interrupted.
+or usage (one line on stderr; the traceback only with ``--debug``), 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM); an interrupted run leaves no partial file
+(docs/limits.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
+import signal
 import sys
 import traceback
+from dataclasses import fields
 from pathlib import Path
 from typing import Sequence
 
 from .. import __version__
 from ..align import METHODS, align
-from ..errors import GridMergeError, OutputError
+from ..errors import GridMergeError, LimitExceededError, OutputError
 from ..fuse import FUSION_RULES
 from ..grid import DEFAULT_RESOLUTION
 from ..io import SAVE_MODES, load_map, save_map
-from ..io.map_server import YAML_SUFFIXES
+from ..io.map_server import YAML_SUFFIXES, yaml_image_path
+from ..limits import DEFAULT_LIMITS, Limits, extractor_for
 from ..merge import merge
 from ..samples import SAMPLE_KINDS, write_sample
 
@@ -30,10 +36,67 @@ EXIT_OK = 0
 EXIT_DECLINED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143
 
 
 class _UsageError(GridMergeError):
     pass
+
+
+class _Terminated(BaseException):
+    """SIGTERM, raised like KeyboardInterrupt so that partial outputs are removed."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated
+
+
+def _count(text: str) -> int:
+    """A positive integer, also written as 2e8 or 200_000_000."""
+    try:
+        value = float(text) if any(c in text for c in ".eE") else int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (isinstance(value, int) or (math.isfinite(value) and value == int(value))) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive whole number, got {text!r}")
+    return int(value)
+
+
+def _factor(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
+
+
+_LIMIT_HELP = {
+    "max_pixels": "cells of one input image or array",
+    "max_yaml_bytes": "size of a map YAML file",
+    "max_keypoints": "keypoints kept per map (the strongest)",
+    "max_feature_pixels": "pixels keypoints are detected in (larger maps are detected at reduced resolution)",
+    "max_canvas_cells": "cells of the merged map",
+    "max_canvas_factor": "merged cells per input cell",
+}
+
+
+def _add_limits(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("limits (docs/limits.md)")
+    for f in fields(Limits):
+        group.add_argument(
+            "--" + f.name.replace("_", "-"),
+            dest=f.name,
+            type=_factor if f.name == "max_canvas_factor" else _count,
+            default=None,
+            metavar="X" if f.name == "max_canvas_factor" else "N",
+            help=f"{_LIMIT_HELP[f.name]} (default {getattr(DEFAULT_LIMITS, f.name)})",
+        )
+
+
+def _limits(args) -> Limits:
+    return DEFAULT_LIMITS.replace(**{f.name: getattr(args, f.name, None) for f in fields(Limits)})
 
 
 class _Parser(argparse.ArgumentParser):
@@ -54,6 +117,7 @@ def _parser() -> argparse.ArgumentParser:
     common.add_argument("--method", choices=sorted(METHODS), default="hybrid", help="alignment method (default: hybrid)")
     common.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
     common.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    _add_limits(common)
 
     p = _Parser(prog="gridmerge", description="Merge occupancy grid maps of several robots.")
     p.add_argument("--version", action="version", version=f"gridmerge {__version__}")
@@ -97,26 +161,18 @@ def _parser() -> argparse.ArgumentParser:
 def _same_file(p: Path, q: Path) -> bool:
     try:
         return p.resolve() == q.resolve() or (p.exists() and q.exists() and os.path.samefile(p, q))
-    except OSError:
+    except (OSError, ValueError):  # ValueError: NUL bytes or surrogates in a name
         return False
 
 
-def _input_files(paths: Sequence[str]) -> list[Path]:
+def _input_files(paths: Sequence[str], limits: Limits) -> list[Path]:
     """The input paths and, for map_server YAMLs, the images they name."""
-    import yaml
-
     files = []
     for s in paths:
-        p = Path(s)
-        files.append(p)
-        if p.suffix.lower() in YAML_SUFFIXES and p.is_file():
-            try:
-                doc = yaml.safe_load(p.read_text(errors="replace"))
-                if isinstance(doc, dict) and isinstance(doc.get("image"), str):
-                    img = Path(doc["image"])
-                    files.append(img if img.is_absolute() else p.parent / img)
-            except (yaml.YAMLError, OSError, ValueError):
-                pass  # load_map reports a broken YAML with a proper message
+        files.append(Path(s))
+        image = yaml_image_path(s, max_yaml_bytes=limits.max_yaml_bytes)  # None if broken: load_map says why
+        if image is not None:
+            files.append(image)
     return files
 
 
@@ -132,24 +188,47 @@ def _check_output(path: Path, inputs: list[Path], force: bool, what: str) -> Non
         raise OutputError(f"{what} {path} exists; use --force to overwrite it")
 
 
-def _load_all(paths: Sequence[str], resolution: float | None):
+def _load_all(paths: Sequence[str], resolution: float | None, limits: Limits):
     # --resolution is for bare images and .npy files; a YAML's own resolution is kept.
     return [
-        load_map(p, resolution=None if Path(p).suffix.lower() in YAML_SUFFIXES else resolution)
+        load_map(p, resolution=None if Path(p).suffix.lower() in YAML_SUFFIXES else resolution, limits=limits)
         for p in paths
     ]
 
 
+def _finite(obj):
+    """``obj`` with every NaN or infinite float replaced by None (JSON has neither)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
 def _print_json(obj) -> None:
-    sys.stdout.write(json.dumps(obj, indent=2) + "\n")
+    sys.stdout.write(json.dumps(_finite(obj), indent=2, allow_nan=False) + "\n")
+
+
+def _capped_note(result, limits: Limits) -> str:
+    if not (result.details or {}).get("features_capped"):
+        return ""
+    return (
+        f"note: keypoints were capped (at most {limits.max_keypoints} per map, detected in at most "
+        f"{limits.max_feature_pixels} pixels; see --max-keypoints, --max-feature-pixels)"
+    )
 
 
 def _cmd_align(args) -> int:
-    a, b = _load_all([args.a, args.b], args.resolution)
-    r = align(a, b, method=args.method, rng=args.seed)
+    limits = _limits(args)
+    a, b = _load_all([args.a, args.b], args.resolution, limits)
+    extractor = extractor_for(args.method, limits)
+    r = align(a, b, method=args.method, rng=args.seed, max_keypoints=limits.max_keypoints, extractor=extractor)
     if args.json:
         _print_json(r.to_dict())
-    elif r.success:
+        return EXIT_OK if r.success else EXIT_DECLINED
+    if r.success:
         t = r.transform
         m = r.metric or {}
         print(f"aligned: rotation {r.rotation_deg:.3f} deg, scale {r.scale:.5f}, translation ({t.translation[0]:.2f}, {t.translation[1]:.2f}) px")
@@ -157,6 +236,8 @@ def _cmd_align(args) -> int:
         print(f"confidence {r.confidence:.2f}, acceptance index {r.acceptance_index:.3f}, {r.inliers} inliers of {r.matches} matches, {r.elapsed_s:.2f} s")
     else:
         print(f"not aligned: {r.message}")
+    if _capped_note(r, limits):
+        print(_capped_note(r, limits))
     return EXIT_OK if r.success else EXIT_DECLINED
 
 
@@ -166,7 +247,8 @@ def _cmd_merge(args) -> int:
     out = Path(args.output)
     if out.suffix.lower() not in YAML_SUFFIXES:
         raise _UsageError(f"the output must be a map_server .yaml file, got {out}")
-    inputs = _input_files(args.maps)
+    limits = _limits(args)
+    inputs = _input_files(args.maps, limits)
     _check_output(out, inputs, args.force, "output")
     _check_output(out.with_suffix(".pgm"), inputs, args.force, "output image")
     if args.plot:
@@ -174,8 +256,8 @@ def _cmd_merge(args) -> int:
 
         require_matplotlib()
         _check_output(Path(args.plot), inputs, args.force, "plot")
-    maps = _load_all(args.maps, args.resolution)
-    result = merge(maps, method=args.method, fusion=args.fusion, rng=args.seed)
+    maps = _load_all(args.maps, args.resolution, limits)
+    result = merge(maps, method=args.method, fusion=args.fusion, rng=args.seed, limits=limits)
     if result.success:
         save_map(result.grid, out, mode=args.save_mode)  # type: ignore[arg-type]
         if args.plot:
@@ -196,6 +278,10 @@ def _cmd_merge(args) -> int:
                 print(f"  {name}: rotation {al.rotation_deg:.3f} deg, scale {al.scale:.5f}, confidence {al.confidence:.2f}")
     else:
         print(f"not merged: {result.message}")
+    if not args.json:
+        note = next((_capped_note(al, limits) for al in result.alignments if al is not None and _capped_note(al, limits)), "")
+        if note:
+            print(note)
     return EXIT_OK if result.success else EXIT_DECLINED
 
 
@@ -215,7 +301,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
+    if hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(errors="backslashreplace")  # undecodable file names
+    previous = None
     try:
+        previous = _catch_sigterm()
         args = _parser().parse_args(argv)
         if args.command is None:
             raise _UsageError(f"a command is needed: {', '.join(_COMMANDS)}")
@@ -223,6 +313,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("gridmerge: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except _Terminated:
+        print("gridmerge: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
     except SystemExit as exc:  # --help and --version
         return int(exc.code or 0) if isinstance(exc.code, int) else 0
     except Exception as exc:  # noqa: BLE001 - every error ends as one line
@@ -230,6 +323,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         if isinstance(exc, GridMergeError):
             msg = str(exc)
+            limit = getattr(exc, "limit", None) if isinstance(exc, LimitExceededError) else None
+            if limit:
+                msg += f"; see --{limit.replace('_', '-')}"
         elif isinstance(exc, MemoryError):
             msg = "out of memory (see docs/limits.md)"
         elif isinstance(exc, OSError):
@@ -238,6 +334,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             msg = f"unexpected {type(exc).__name__}: {exc} (run with --debug for the traceback)"
         print(f"gridmerge: error: {' '.join(msg.split())}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _catch_sigterm():
+    """Turn SIGTERM into an exception (main thread only); returns the previous handler."""
+    try:
+        return signal.signal(signal.SIGTERM, _on_sigterm)
+    except (ValueError, OSError, AttributeError):  # not the main thread, or no SIGTERM
+        return None
 
 
 if __name__ == "__main__":  # pragma: no cover

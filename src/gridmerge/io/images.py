@@ -6,9 +6,12 @@ file whose ``maxval`` is below 255 up to 0..255 (``v * 255 // maxval``); OpenCV 
 for the ASCII variants only. Every other format is decoded by
 ``cv2.imdecode(..., cv2.IMREAD_UNCHANGED)``.
 
-Before anything is decoded, the width and height that a PNM header or a PNG ``IHDR``
-chunk claims are checked against ``max_pixels``, so that a tiny file announcing a huge
-image is refused without allocating it.
+Before anything is decoded, the width and height that the file's header claims (PNM,
+PNG ``IHDR``, BMP, JPEG ``SOF``, TIFF, WebP) are checked against ``max_pixels``, so that a
+tiny file announcing a huge image (a decompression bomb) is refused without allocating
+it. Files in other formats are refused, since their size cannot be checked before
+OpenCV allocates the image; so are files that are not regular files (FIFOs, devices) and
+files larger than any image of ``max_pixels`` pixels can be.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import stat
 import struct
 import zlib
 from pathlib import Path
@@ -24,12 +28,17 @@ from typing import BinaryIO, Iterator, NamedTuple, Optional, Union
 import cv2
 import numpy as np
 
-from ..errors import MapFormatError
+from ..errors import InputTooLargeError, MapFormatError
+from ..limits import DEFAULT_LIMITS
 
-__all__ = ["MAX_PIXELS", "read_image", "image_size", "encode_pgm", "encode_png"]
+__all__ = ["MAX_PIXELS", "read_image", "image_size", "encode_pgm", "encode_png", "max_file_bytes"]
 
-#: Default limit on ``width * height`` of an image read by :func:`read_image`.
-MAX_PIXELS = 100_000_000
+#: Default limit on ``width * height`` of an image read by :func:`read_image`
+#: (:data:`gridmerge.limits.DEFAULT_LIMITS`).
+MAX_PIXELS = DEFAULT_LIMITS.max_pixels
+
+#: The formats whose size is checked before decoding, hence the only ones read.
+IMAGE_FORMATS = "PGM/PPM/PBM, PNG, BMP, JPEG, TIFF or WebP"
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -100,6 +109,91 @@ def _png_size(buf: bytes) -> Optional[tuple[int, int]]:
     return None
 
 
+def _bmp_size(buf: bytes) -> Optional[tuple[int, int]]:
+    if buf[:2] != b"BM" or len(buf) < 26:
+        return None
+    (header_size,) = struct.unpack("<I", buf[14:18])
+    if header_size == 12:  # BITMAPCOREHEADER
+        return struct.unpack("<HH", buf[18:22])
+    width, height = struct.unpack("<ii", buf[18:26])
+    return abs(width), abs(height)
+
+
+# JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic...).
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _jpeg_size(buf: bytes) -> Optional[tuple[int, int]]:
+    if buf[:2] != b"\xff\xd8":
+        return None
+    pos = 2
+    while pos + 4 <= len(buf):
+        if buf[pos] != 0xFF:
+            return None
+        marker = buf[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD8:  # markers without a length
+            pos += 2
+            continue
+        (length,) = struct.unpack(">H", buf[pos + 2 : pos + 4])
+        if marker in _JPEG_SOF:
+            if pos + 9 > len(buf):
+                return None
+            height, width = struct.unpack(">HH", buf[pos + 5 : pos + 9])
+            return width, height
+        if marker in (0xDA, 0xD9) or length < 2:  # scan data or end before any frame
+            return None
+        pos += 2 + length
+    return None
+
+
+def _webp_size(buf: bytes) -> Optional[tuple[int, int]]:
+    if buf[:4] != b"RIFF" or buf[8:12] != b"WEBP" or len(buf) < 30:
+        return None
+    kind = buf[12:16]
+    if kind == b"VP8 " and buf[23:26] == b"\x9d\x01\x2a":
+        width, height = struct.unpack("<HH", buf[26:30])
+        return width & 0x3FFF, height & 0x3FFF
+    if kind == b"VP8L" and buf[20] == 0x2F:
+        (bits,) = struct.unpack("<I", buf[21:25])
+        return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+    if kind == b"VP8X":
+        width = int.from_bytes(buf[24:27], "little") + 1
+        height = int.from_bytes(buf[27:30], "little") + 1
+        return width, height
+    return None
+
+
+def _tiff_size(buf: bytes) -> Optional[tuple[int, int]]:
+    """Size of the first image of a (classic, not Big-) TIFF file."""
+    if buf[:4] == b"II*\x00":
+        order = "<"
+    elif buf[:4] == b"MM\x00*":
+        order = ">"
+    else:
+        return None
+    if len(buf) < 8:
+        return None
+    (ifd,) = struct.unpack(order + "I", buf[4:8])
+    if ifd + 2 > len(buf):
+        return None
+    (count,) = struct.unpack(order + "H", buf[ifd : ifd + 2])
+    found: dict[int, int] = {}
+    for k in range(count):
+        entry = ifd + 2 + 12 * k
+        if entry + 12 > len(buf):
+            return None
+        tag, kind, n = struct.unpack(order + "HHI", buf[entry : entry + 8])
+        if tag in (256, 257) and n == 1 and kind in (3, 4):
+            fmt = order + ("H" if kind == 3 else "I")
+            (found[tag],) = struct.unpack_from(fmt, buf, entry + 8)
+    if 256 in found and 257 in found:
+        return found[256], found[257]
+    return None
+
+
 def _png_problem(data: bytes) -> Optional[str]:
     """Why a PNG file is damaged (missing bytes, bad chunk checksum), or ``None``.
 
@@ -123,17 +217,19 @@ def _png_problem(data: bytes) -> Optional[str]:
 
 
 def image_size(head: bytes) -> Optional[tuple[int, int]]:
-    """``(width, height)`` claimed by the header of a PNM or PNG file, without decoding.
+    """``(width, height)`` claimed by the header of an image file, without decoding.
 
     Parameters
     ----------
     head : bytes
-        The first bytes of the file (a few hundred are usually enough).
+        The first bytes of the file (a few hundred are usually enough; a JPEG's size may
+        follow its metadata, a TIFF's may be anywhere in the file).
 
     Returns
     -------
     (int, int) or None
-        ``None`` for other formats, or when ``head`` is too short to tell.
+        ``None`` for formats other than PNM (``P1``..``P6``), PNG, BMP, JPEG, TIFF and
+        WebP, or when ``head`` is too short to tell.
 
     Examples
     --------
@@ -148,14 +244,28 @@ def image_size(head: bytes) -> Optional[tuple[int, int]]:
         return None
     if header is not None:
         return header.width, header.height
-    return _png_size(head)
+    for size in (_png_size, _bmp_size, _jpeg_size, _webp_size, _tiff_size):
+        found = size(head)
+        if found is not None:
+            return found
+    return None
+
+
+def max_file_bytes(max_pixels: int) -> int:
+    """The largest image file read for a limit of ``max_pixels`` pixels.
+
+    No supported format needs more than 32 bytes per pixel (an ASCII colour PNM with
+    16-bit samples needs 18); larger files are refused before they are read.
+    """
+    return 32 * int(max_pixels) + (1 << 20)
 
 
 def _check_pixels(path: Path, width: int, height: int, max_pixels: int) -> None:
     if width * height > max_pixels:
-        raise MapFormatError(
-            f"image is {width} x {height} = {width * height} pixels, more than the limit of {max_pixels}",
+        raise InputTooLargeError(
+            f"image is {width} x {height} = {width * height} pixels, more than the limit of {max_pixels} (max_pixels)",
             path=path,
+            limit="max_pixels",
         )
 
 
@@ -166,14 +276,32 @@ def open_input(path: Path, kind: str) -> Iterator[BinaryIO]:
     ``kind`` names what the file should be, for the message about a directory
     (e.g. ``"an image file"``).
     """
-    if path.is_dir():
-        raise MapFormatError(f"is a directory, not {kind}", path=path)
     try:
-        fh = open(path, "rb")
+        # Opened without blocking (a FIFO would wait for a writer), then checked to be a
+        # regular file: devices and FIFOs never end.
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
     except FileNotFoundError:
         raise MapFormatError("no such file", path=path) from None
+    except IsADirectoryError:
+        raise MapFormatError(f"is a directory, not {kind}", path=path) from None
     except OSError as exc:
+        if os.path.isdir(path):  # Windows refuses to open folders with "permission denied"
+            raise MapFormatError(f"is a directory, not {kind}", path=path) from None
         raise MapFormatError(f"cannot read the file: {exc.strerror or exc}", path=path) from None
+    except ValueError:  # a NUL byte or a lone surrogate in the name
+        raise MapFormatError("invalid file name", path=_printable(path)) from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise MapFormatError(f"is a directory, not {kind}", path=path)
+        if not stat.S_ISREG(mode):
+            raise MapFormatError(f"is not a regular file (a device, FIFO or socket), not {kind}", path=path)
+        if getattr(os, "O_NONBLOCK", 0):
+            os.set_blocking(fd, True)
+        fh = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
     with fh:
         try:
             yield fh
@@ -181,27 +309,80 @@ def open_input(path: Path, kind: str) -> Iterator[BinaryIO]:
             raise MapFormatError(f"cannot read the file: {exc.strerror or exc}", path=path) from None
 
 
+def _printable(path) -> str:
+    """``path`` as text that can be printed (NUL bytes and surrogates escaped)."""
+    text = os.fspath(path)
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", "backslashreplace")
+    return text.encode("utf-8", "backslashreplace").decode("utf-8").replace("\x00", "\\x00")
+
+
+def _read_at_most(fh: BinaryIO, limit: int, first: bytes = b"") -> bytes:
+    """``first`` and the rest of the file, but no more than ``limit`` bytes in all (read in
+    chunks: a single ``read(limit)`` would allocate ``limit`` bytes up front)."""
+    chunks = [first]
+    total = len(first)
+    while total < limit:
+        chunk = fh.read(min(1 << 24, limit - total))
+        if not chunk:
+            break
+        chunks.append(chunk)
+        total += len(chunk)
+    return b"".join(chunks)
+
+
+# Signatures of the formats image_size() knows (PNM is recognised by its header parser).
+_SIGNATURES = (_PNG_SIGNATURE, b"BM", b"\xff\xd8", b"II*\x00", b"MM\x00*")
+
+
+def _known_format(head: bytes) -> bool:
+    return head.startswith(_SIGNATURES) or (head[:4] == b"RIFF" and head[8:12] == b"WEBP")
+
+
 def _read_bytes(path: Path, max_pixels: int) -> tuple[bytes, Optional[_PnmHeader]]:
     """The content of the file, refused early if its header claims too many pixels."""
+    unknown = f"not a readable image: unknown format or unreadable header (expected {IMAGE_FORMATS})"
+    limit = max_file_bytes(max_pixels)
     with open_input(path, "an image file") as fh:
+        size_on_disk = os.fstat(fh.fileno()).st_size
+        if size_on_disk > limit:
+            raise InputTooLargeError(
+                f"file of {size_on_disk} bytes is larger than any image of at most {max_pixels} pixels (max_pixels)",
+                path=path,
+                limit="max_pixels",
+            )
         data = fh.read(_HEAD_BYTES)
+        if not data:
+            raise MapFormatError("the file is empty", path=path)
         header: Optional[_PnmHeader] = None
         try:
             header = _parse_pnm_header(data)
         except _Incomplete:
-            data += fh.read()
+            data = _read_at_most(fh, limit + 1, data)
             try:
                 header = _parse_pnm_header(data)
             except _Incomplete:
                 raise MapFormatError("truncated image header", path=path) from None
+            except ValueError as exc:
+                raise MapFormatError(str(exc), path=path) from None
         except ValueError as exc:
             raise MapFormatError(str(exc), path=path) from None
-        size = (header.width, header.height) if header is not None else _png_size(data)
+        if header is None and not _known_format(data):
+            raise MapFormatError(unknown, path=path)  # refused without reading the rest
+        size = (header.width, header.height) if header is not None else image_size(data)
         if size is not None:
             _check_pixels(path, size[0], size[1], max_pixels)
-        data += fh.read()
-    if not data:
-        raise MapFormatError("the file is empty", path=path)
+        data = _read_at_most(fh, limit + 1, data)
+    if len(data) > limit:  # grew while being read
+        raise InputTooLargeError(
+            f"file is larger than any image of at most {max_pixels} pixels (max_pixels)", path=path, limit="max_pixels"
+        )
+    if header is None:
+        # JPEG and TIFF may give their size after the first bytes: checked on the whole file.
+        size = image_size(data)
+        if size is None or size[0] <= 0 or size[1] <= 0:
+            raise MapFormatError(unknown, path=path)
+        _check_pixels(path, size[0], size[1], max_pixels)
     return data, header
 
 

@@ -67,16 +67,18 @@ from __future__ import annotations
 import io
 import math
 import os
+import reprlib
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 import yaml
 
-from ..errors import MapFormatError
+from ..errors import InputTooLargeError, MapFormatError
 from ..grid import DEFAULT_RESOLUTION, FREE_THRESHOLD, OCCUPIED_THRESHOLD, OccupancyGrid
+from ..limits import DEFAULT_LIMITS, Limits
 from .atomic import atomic_files, atomic_write
-from .images import MAX_PIXELS, encode_pgm, encode_png, open_input, read_image
+from .images import _read_at_most, encode_pgm, encode_png, open_input, read_image
 
 __all__ = [
     "load_map",
@@ -87,6 +89,7 @@ __all__ = [
     "SAVE_MODES",
     "IMAGE_SUFFIXES",
     "YAML_SUFFIXES",
+    "yaml_image_path",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -105,7 +108,8 @@ IMAGE_SUFFIXES = frozenset(
 #: Pixel values map_saver writes in trinary mode.
 FREE_PIXEL, OCCUPIED_PIXEL, UNKNOWN_PIXEL = 254, 0, 205
 
-_MAX_YAML_BYTES = 1 << 20  # a map YAML is a few hundred bytes
+#: Cells of the pixel-conversion blocks (bounds the temporaries of colour images).
+_BLOCK_PIXELS = 1 << 20
 
 
 # --------------------------------------------------------------------------- pixels
@@ -158,9 +162,15 @@ def pixels_to_ros(
         return _pixels_to_ros(levels, mode, negate, occupied_thresh, free_thresh)[:, 0][arr]
     if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4):
         raise ValueError(f"image must be (H, W) or (H, W, C) with C in 1..4, got shape {arr.shape}")
-    if arr.shape[2] == 2:  # grey + alpha: SDL_image hands it over as RGBA
-        arr = arr[:, :, [0, 0, 0, 1]]
-    return _pixels_to_ros(arr, mode, negate, occupied_thresh, free_thresh)
+    out = np.empty(arr.shape[:2], dtype=np.int8)
+    # Row blocks of about _BLOCK_PIXELS cells: the float temporaries stay small.
+    rows = max(1, _BLOCK_PIXELS // max(1, arr.shape[1]))
+    for top in range(0, arr.shape[0], rows):
+        block = arr[top : top + rows]
+        if block.shape[2] == 2:  # grey + alpha: SDL_image hands it over as RGBA
+            block = block[:, :, [0, 0, 0, 1]]
+        out[top : top + rows] = _pixels_to_ros(block, mode, negate, occupied_thresh, free_thresh)
+    return out
 
 
 def _pixels_to_ros(arr: np.ndarray, mode: str, negate: bool, occupied_thresh: float, free_thresh: float) -> np.ndarray:
@@ -249,16 +259,31 @@ def _grid_from_ros(values: np.ndarray, resolution, origin, name: str) -> Occupan
 
 
 # ----------------------------------------------------------------------------- YAML
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxtuple, _REPR.maxdict, _REPR.maxset = 2, 4, 4, 3, 3
+_REPR.maxstring, _REPR.maxlong, _REPR.maxother = 40, 40, 40
+
+
 def _show(value: Any) -> str:
-    text = repr(value)
+    """A short, one-line ``repr`` of a YAML value, in bounded time (YAML aliases can make
+    a small file hold a structure whose full ``repr`` has billions of characters)."""
+    try:
+        text = _REPR.repr(value)
+    except Exception:  # noqa: BLE001 - a value that cannot even be shown
+        text = f"<{type(value).__name__}>"
+    text = " ".join(text.split())
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _read_yaml(path: Path) -> Any:
+def _read_yaml(path: Path, max_bytes: int) -> Any:
     with open_input(path, "a map YAML file") as fh:
-        raw = fh.read(_MAX_YAML_BYTES + 1)
-    if len(raw) > _MAX_YAML_BYTES:
-        raise MapFormatError(f"too large for a map YAML file (more than {_MAX_YAML_BYTES} bytes)", path=path)
+        raw = _read_at_most(fh, max_bytes + 1)
+    if len(raw) > max_bytes:
+        raise InputTooLargeError(
+            f"too large for a map YAML file: more than the limit of {max_bytes} bytes (max_yaml_bytes)",
+            path=path,
+            limit="max_yaml_bytes",
+        )
     try:
         if b"\x00" in raw:
             raise UnicodeDecodeError("utf-8", raw, 0, 1, "NUL byte")
@@ -273,6 +298,11 @@ def _read_yaml(path: Path) -> Any:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         message = f"invalid YAML: {problem}{where}".replace("\n", " ")
         raise MapFormatError(message, path=path) from None
+    except RecursionError:
+        raise MapFormatError("invalid YAML: nested too deeply", path=path) from None
+    except (ValueError, OverflowError, TypeError) as exc:  # e.g. an integer of 5000 digits
+        reason = (str(exc).splitlines() or [type(exc).__name__])[0].split(": ")[0][:100]
+        raise MapFormatError(f"invalid YAML: {reason}", path=path) from None
 
 
 def _as_float(value: Any, key: str, path: Path) -> float:
@@ -296,12 +326,16 @@ def _number(doc: Mapping, key: str, path: Path, default: Optional[float] = None)
     return _as_float(doc[key], key, path)
 
 
-def _parse_map_yaml(path: Path) -> dict:
+def _parse_map_yaml(path: Path, max_yaml_bytes: int = DEFAULT_LIMITS.max_yaml_bytes) -> dict:
     """Validated map_server parameters of a YAML file."""
-    doc = _read_yaml(path)
+    doc = _read_yaml(path, max_yaml_bytes)
     if not isinstance(doc, dict):
-        kind = "empty" if doc is None else f"a {type(doc).__name__}"
-        raise MapFormatError(f"a map YAML must be a mapping of keys to values, this one is {kind}", path=path)
+        kind = "is empty" if doc is None else f"holds a {type(doc).__name__}"
+        raise MapFormatError(
+            f"missing: the file {kind}, not a mapping of map_server keys (image, resolution, origin, ...)",
+            path=path,
+            field="image",
+        )
 
     image = doc.get("image")
     if image is None:
@@ -388,10 +422,12 @@ def _map_yaml(image_name: str, grid: OccupancyGrid, mode: str) -> str:
 
 
 # ------------------------------------------------------------------------- loaders
-def _load_yaml_map(path: Path, resolution, origin, max_pixels: int) -> OccupancyGrid:
-    params = _parse_map_yaml(path)
+def _load_yaml_map(path: Path, resolution, origin, limits: Limits) -> OccupancyGrid:
+    params = _parse_map_yaml(path, limits.max_yaml_bytes)
     try:
-        img = read_image(params["image"], max_pixels=max_pixels)
+        img = read_image(params["image"], max_pixels=limits.max_pixels)
+    except InputTooLargeError as exc:
+        raise InputTooLargeError(str(exc), path=path, field="image", limit=exc.limit) from None
     except MapFormatError as exc:
         raise MapFormatError(str(exc), path=path, field="image") from None
     values = pixels_to_ros(
@@ -414,38 +450,53 @@ def _load_image_map(path: Path, resolution, origin, max_pixels: int) -> Occupanc
     return _grid_from_ros(values, resolution, origin, str(path))
 
 
-def _npy_shape(fh) -> Optional[tuple]:
-    """The array shape from a .npy header, or None for header versions numpy keeps private."""
+def _npy_header(fh) -> tuple[tuple, np.dtype]:
+    """Shape and dtype from a .npy header (format versions 1 and 2)."""
     version = np.lib.format.read_magic(fh)
     if version == (1, 0):
-        shape, _, _ = np.lib.format.read_array_header_1_0(fh)
+        shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
     elif version == (2, 0):
-        shape, _, _ = np.lib.format.read_array_header_2_0(fh)
+        shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
     else:
-        return None
-    return shape
+        raise ValueError(f"unsupported .npy format version {version[0]}.{version[1]}")
+    return shape, dtype
 
 
 def _load_npy(path: Path, resolution, origin, max_pixels: int) -> OccupancyGrid:
     with open_input(path, "a .npy file") as fh:
         try:
-            shape = _npy_shape(fh)
-            if shape is not None and math.prod(shape) > max_pixels:
+            shape, dtype = _npy_header(fh)
+            if dtype.hasobject or dtype.kind not in "iuf" or dtype.itemsize > 8:
                 raise MapFormatError(
-                    f"array of shape {shape} has {math.prod(shape)} cells, more than the limit of {max_pixels}",
+                    f"unsupported dtype {_show(dtype.str)}: use integers (ROS percentages) or floats (probabilities)",
                     path=path,
+                    field="data",
+                )
+            cells = math.prod(shape)
+            if cells > max_pixels:
+                raise InputTooLargeError(
+                    f"array of shape {_show(shape)} has {cells} cells, more than the limit of {max_pixels} (max_pixels)",
+                    path=path,
+                    limit="max_pixels",
+                )
+            available = os.fstat(fh.fileno()).st_size - fh.tell()
+            if cells >= 0 and available < cells * dtype.itemsize:
+                raise MapFormatError(
+                    f"truncated: {available} of {cells * dtype.itemsize} bytes of array data", path=path, field="data"
                 )
             fh.seek(0)
             arr = np.load(fh, allow_pickle=False)
-        except MapFormatError:
+        except (MapFormatError, MemoryError):
             raise
-        except (ValueError, EOFError, TypeError) as exc:
-            reason = (str(exc).splitlines() or [type(exc).__name__])[0]
+        except Exception as exc:  # noqa: BLE001 - numpy's header parser raises many kinds (tokenize errors too)
+            reason = (str(exc).splitlines() or [type(exc).__name__])[0][:100] or type(exc).__name__
             raise MapFormatError(f"not a valid .npy file: {reason}", path=path) from None
     if not isinstance(arr, np.ndarray) or arr.ndim != 2:
         raise MapFormatError(f"must hold a 2-D array, got shape {np.shape(arr)}", path=path, field="data")
     if arr.shape[0] * arr.shape[1] > max_pixels:
-        raise MapFormatError(f"array has {arr.size} cells, more than the limit of {max_pixels}", path=path)
+        raise InputTooLargeError(
+            f"array has {arr.size} cells, more than the limit of {max_pixels} (max_pixels)", path=path, limit="max_pixels"
+        )
     if arr.dtype.kind in "iu":  # ROS percentages
         values = np.where((arr >= 0) & (arr <= 100), arr, -1).astype(np.int8)
         return _grid_from_ros(values, resolution, origin, str(path))
@@ -463,7 +514,8 @@ def load_map(
     *,
     resolution: Optional[float] = None,
     origin: Optional[Sequence[float]] = None,
-    max_pixels: int = MAX_PIXELS,
+    max_pixels: Optional[int] = None,
+    limits: Optional[Limits] = None,
 ) -> OccupancyGrid:
     """Load an occupancy grid from a map_server YAML, a bare image or a ``.npy`` file.
 
@@ -485,7 +537,10 @@ def load_map(
         and ``.npy`` files; for a YAML, if given, it overrides the file's value.
     max_pixels : int, optional
         Refuse images or arrays with more cells than this (checked from the file's header
-        before decoding where the format allows).
+        before decoding). Overrides ``limits.max_pixels``.
+    limits : gridmerge.limits.Limits, optional
+        ``max_pixels`` and ``max_yaml_bytes`` (default
+        :data:`gridmerge.limits.DEFAULT_LIMITS`).
 
     Returns
     -------
@@ -498,7 +553,8 @@ def load_map(
         The file is missing, unreadable or malformed, a YAML key is missing or invalid,
         the image is missing or not an image, or the extension is unknown. The message
         is one line naming the file (the YAML for problems with its image) and the
-        field.
+        field. :class:`~gridmerge.errors.InputTooLargeError` (a ``MapFormatError``)
+        when a limit is exceeded.
 
     Examples
     --------
@@ -512,21 +568,43 @@ def load_map(
     ([[0.0, 1.0, nan]], 0.1, (1.0, 2.0, 0.0))
     >>> tmp.cleanup()
     """
+    lim = limits or DEFAULT_LIMITS
+    if max_pixels is not None:
+        lim = lim.replace(max_pixels=max_pixels)
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix in YAML_SUFFIXES:
-        return _load_yaml_map(p, resolution, origin, max_pixels)
+        return _load_yaml_map(p, resolution, origin, lim)
     res = DEFAULT_RESOLUTION if resolution is None else resolution
     org = (0.0, 0.0, 0.0) if origin is None else origin
     if suffix == ".npy":
-        return _load_npy(p, res, org, max_pixels)
+        return _load_npy(p, res, org, lim.max_pixels)
     if suffix in IMAGE_SUFFIXES:
-        return _load_image_map(p, res, org, max_pixels)
+        return _load_image_map(p, res, org, lim.max_pixels)
     raise MapFormatError(
         f"unknown map file extension {suffix or '(none)'!r}: expected .yaml, .yml, .npy or an image "
         f"({', '.join(sorted(IMAGE_SUFFIXES))})",
         path=p,
     )
+
+
+def yaml_image_path(path: PathLike, *, max_yaml_bytes: int = DEFAULT_LIMITS.max_yaml_bytes) -> Optional[Path]:
+    """The image a map_server YAML names, or ``None`` (best effort, never raises).
+
+    Used to keep outputs from overwriting the images of inputs; :func:`load_map` reports
+    what is wrong with a YAML that gives ``None``.
+    """
+    try:
+        p = Path(path)
+        if p.suffix.lower() not in YAML_SUFFIXES:
+            return None
+        image = _read_yaml(p, max_yaml_bytes).get("image")
+        if not isinstance(image, str) or not image.strip():
+            return None
+        img = Path(image)
+        return img if img.is_absolute() else p.parent / img
+    except Exception:  # noqa: BLE001 - best effort by design
+        return None
 
 
 # -------------------------------------------------------------------------- saving
