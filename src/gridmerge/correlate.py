@@ -108,7 +108,8 @@ def rotation_candidates(a: OccupancyGrid, b: OccupancyGrid, n: int = 4, min_sepa
 def _signed_walls(grid: OccupancyGrid, factor: float, free_weight: float, sigma: float) -> np.ndarray:
     img = grid.occupied().astype(np.float32) - free_weight * grid.free().astype(np.float32)
     if factor < 1.0:
-        img = cv2.resize(img, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
+        size = (max(1, round(img.shape[1] * factor)), max(1, round(img.shape[0] * factor)))
+        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
     return cv2.GaussianBlur(img, (0, 0), sigma)
 
 

@@ -101,8 +101,8 @@ class OccupancyGrid:
         if np.isinf(arr).any():
             raise MapFormatError("map data contains infinite values", path=self.name, field="data")
         if finite.any():
-            lo = float(arr[finite].min())
-            hi = float(arr[finite].max())
+            lo = float(np.nanmin(arr))
+            hi = float(np.nanmax(arr))
             if lo < 0.0 or hi > 1.0:
                 raise MapFormatError(
                     f"cell values must be probabilities in [0, 1] (NaN = unknown), got [{lo}, {hi}]",
@@ -206,14 +206,22 @@ class OccupancyGrid:
         origin : (3,) sequence of float
             ``(x, y, yaw)`` of ``info.origin``.
         """
+        dims = []
+        for label, v in (("width", width), ("height", height)):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < 0:
+                raise MapFormatError(f"must be a non-negative integer, got {v!r}", path=name, field=label)
+            dims.append(int(v))
+        w, h = dims
         vals = np.asarray(values)
-        if vals.ndim != 1 or vals.size != int(width) * int(height):
+        if vals.dtype.kind not in "iub":
+            raise MapFormatError(f"cell values must be integers (int8), got {vals.dtype}", path=name, field="data")
+        if vals.ndim != 1 or vals.size != w * h:
             raise MapFormatError(
-                f"data has {vals.size} cells but width x height = {int(width)} x {int(height)} = {int(width) * int(height)}",
+                f"data has {vals.size} cells but width x height = {w} x {h} = {w * h}",
                 path=name,
                 field="data",
             )
-        v = vals.astype(np.int16, copy=False).reshape(int(height), int(width))[::-1]
+        v = vals.astype(np.int64, copy=False).reshape(h, w)[::-1]
         prob = np.where((v >= 0) & (v <= 100), v.astype(np.float32) / 100.0, np.nan)
         return cls(prob, resolution=resolution, origin=tuple(origin), name=name)  # type: ignore[arg-type]
 

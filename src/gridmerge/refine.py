@@ -63,6 +63,9 @@ def _field(grid: OccupancyGrid, sigma: float):
     return f, gx, gy, sk
 
 
+_REMAP_MAX = 32767
+
+
 def _cached(cache: dict | None, key, compute):
     if cache is None:
         return compute()
@@ -134,6 +137,9 @@ def refine_direct(
     report : RefineReport
     """
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if max(*a.shape, *b.shape) >= _REMAP_MAX:
+        # OpenCV's remap cannot sample images this long; keep the initial estimate.
+        return initial, RefineReport(False, 0, 0, 0.0, math.nan, math.nan)
     p = initial.params.copy()
     steps = 0
     npts = 0
@@ -141,7 +147,8 @@ def refine_direct(
     rms_before = rms_after = math.nan
     for level, sigma_a in enumerate(sigmas):
         scale = math.hypot(p[0, 0], p[1, 0])
-        sigma_b = max(0.5, sigma_a / max(scale, 1e-6))
+        # Clamped: an extreme scale would make the blur enormous (and slow) for nothing.
+        sigma_b = min(max(0.5, sigma_a / max(scale, 1e-6)), 8.0 * sigma_a)
         sigma_b = round(sigma_b * 50) / 50  # 2 % steps, so that nearby scales share a field
         fa, gxa, gya, ka = _cached(cache, ("a", sigma_a), lambda: _field(a, sigma_a))
         fb, gxb, gyb, kb = _cached(cache, ("b", sigma_b), lambda: _field(b, sigma_b))
