@@ -106,11 +106,18 @@ def rotation_candidates(a: OccupancyGrid, b: OccupancyGrid, n: int = 4, min_sepa
 
 
 def _signed_walls(grid: OccupancyGrid, factor: float, free_weight: float, sigma: float) -> np.ndarray:
-    img = grid.occupied().astype(np.float32) - free_weight * grid.free().astype(np.float32)
+    walls = grid.occupied().astype(np.float32)
+    free = grid.free().astype(np.float32)
     if factor < 1.0:
-        size = (max(1, round(img.shape[1] * factor)), max(1, round(img.shape[0] * factor)))
-        img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-    return cv2.GaussianBlur(img, (0, 0), sigma)
+        # Walls are thin: grow them to the coarse cell size first, so that a coarse cell
+        # crossed by a wall counts as wall however thin the wall is.
+        k = int(math.ceil(1.0 / factor))
+        if k > 1:
+            walls = cv2.dilate(walls, np.ones((k, k), np.uint8))
+        size = (max(1, round(walls.shape[1] * factor)), max(1, round(walls.shape[0] * factor)))
+        walls = cv2.resize(walls, size, interpolation=cv2.INTER_AREA)
+        free = cv2.resize(free, size, interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(walls - free_weight * free, (0, 0), sigma)
 
 
 def _peaks(a_img: np.ndarray, b_img: np.ndarray, n: int, suppress: int):
