@@ -262,6 +262,10 @@ class FeatureExtractor:
         detected and described at the reduced resolution that fits (area averaging),
         and its keypoints are mapped back to the map's pixels. Default:
         :data:`gridmerge.limits.DEFAULT_LIMITS`.
+    work_pixels : int
+        Like ``max_image_pixels``, but a choice of speed rather than a safety limit: a
+        larger image is detected at reduced resolution without marking the features as
+        capped (0: full resolution). Refinement against the maps restores precision.
 
     Notes
     -----
@@ -278,6 +282,7 @@ class FeatureExtractor:
         max_keypoints: int = DEFAULT_LIMITS.max_keypoints,
         margin: int = 24,
         max_image_pixels: int = DEFAULT_LIMITS.max_feature_pixels,
+        work_pixels: int = 0,
     ):
         self.detector = SIFT() if detector is None else detector
         self.descriptor = self.detector if descriptor is None else descriptor
@@ -285,6 +290,7 @@ class FeatureExtractor:
         self.max_keypoints = int(max_keypoints)
         self.margin = int(margin)
         self.max_image_pixels = int(max_image_pixels)
+        self.work_pixels = int(work_pixels)
 
     def __call__(self, grid: OccupancyGrid) -> Features:
         binary = bool(getattr(self.descriptor, "binary", False))
@@ -299,9 +305,10 @@ class FeatureExtractor:
             mask = None if mask is None else np.ascontiguousarray(mask[y0:y1, x0:x1])
         if min(image.shape[:2]) < MIN_IMAGE_SIDE:
             return Features.empty(binary=binary)
-        image, mask, zoom = _fit_pixels(image, mask, self.max_image_pixels)
+        limits = [v for v in (self.max_image_pixels, self.work_pixels) if v > 0]
+        capped = bool(self.max_image_pixels) and image.shape[0] * image.shape[1] > self.max_image_pixels
+        image, mask, zoom = _fit_pixels(image, mask, min(limits, default=0))
         keypoints = list(self.detector.detect(image, mask))
-        capped = zoom is not None
         if self.max_keypoints and len(keypoints) > self.max_keypoints:
             order = np.argsort([-k.response for k in keypoints], kind="stable")[: self.max_keypoints]
             keypoints = [keypoints[i] for i in sorted(order)]
@@ -318,7 +325,7 @@ class FeatureExtractor:
     def __repr__(self) -> str:
         return (
             f"FeatureExtractor(detector={self.detector!r}, renderer={self.renderer!r}, "
-            f"max_keypoints={self.max_keypoints}, max_image_pixels={self.max_image_pixels})"
+            f"max_keypoints={self.max_keypoints}, max_image_pixels={self.max_image_pixels}, work_pixels={self.work_pixels})"
         )
 
 

@@ -370,11 +370,12 @@ NOISE_SCRIPT = textwrap.dedent(
     out["capped_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     out["capped_keypoints"] = len(f)
     del big, f
-    # 2. Two independent 2000 x 2000 noise maps through the default pipeline.
+    # 2. Two independent 2000 x 2000 noise maps through the default pipeline, at full
+    #    detection resolution (feature_pixels=0) so that the keypoint cap is what bounds it.
     a = OccupancyGrid(np.random.default_rng(0).integers(0, 2, (2000, 2000)).astype(np.float32))
     b = OccupancyGrid(np.random.default_rng(1).integers(0, 2, (2000, 2000)).astype(np.float32))
     t, c = time.perf_counter(), time.process_time()
-    r = gridmerge.align(a, b)
+    r = gridmerge.align(a, b, feature_pixels=0)
     out["elapsed_s"] = time.perf_counter() - t
     out["cpu_s"] = time.process_time() - c
     out["success"] = r.success
@@ -406,6 +407,13 @@ def test_pure_noise_maps_in_bounded_time_and_memory(h, tmp_path):
     # SIFT alone would need about 2 GB for the 3000 x 3000 map (220 bytes per pixel).
     assert out["capped_rss_mb"] < 900, out
     assert out["rss_mb"] < 2500, out
+
+
+def test_noise_maps_with_default_detection_resolution_are_declined_quickly():
+    a = OccupancyGrid(np.random.default_rng(0).integers(0, 2, (1500, 1500)).astype(np.float32))
+    b = OccupancyGrid(np.random.default_rng(1).integers(0, 2, (1500, 1500)).astype(np.float32))
+    r = gridmerge.align(a, b)
+    assert not r.success and max(r.keypoints) <= DEFAULT_LIMITS.max_keypoints
 
 
 # ---------------------------------------------------------------- CLI output
