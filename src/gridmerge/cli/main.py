@@ -29,6 +29,7 @@ from ..io.map_server import YAML_SUFFIXES, yaml_image_path
 from ..limits import DEFAULT_LIMITS, Limits, extractor_for
 from ..merge import merge
 from ..samples import SAMPLE_KINDS, write_sample
+from . import bench as bench_cli
 
 __all__ = ["main", "EXIT_OK", "EXIT_DECLINED", "EXIT_BAD_INPUT"]
 
@@ -155,6 +156,9 @@ def _parser() -> argparse.ArgumentParser:
     ps.add_argument("--seed", type=int, default=0, help="building seed (default 0)")
     ps.add_argument("--force", action="store_true", help="overwrite existing files")
     ps.add_argument("--debug", action="store_true", help="show the traceback of errors")
+    debug = argparse.ArgumentParser(add_help=False)
+    debug.add_argument("--debug", action="store_true", help="show the traceback of errors")
+    bench_cli.add_parser(sub, parents=[debug])
     return p
 
 
@@ -294,7 +298,7 @@ def _cmd_sample(args) -> int:
     return EXIT_OK
 
 
-_COMMANDS = {"align": _cmd_align, "merge": _cmd_merge, "sample": _cmd_sample}
+_COMMANDS = {"align": _cmd_align, "merge": _cmd_merge, "sample": _cmd_sample, "bench": bench_cli.run}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,956 @@
+"""Benchmark cases: pairs of maps with their ground truth (or none, for negatives).
+
+Three data sets:
+
+:func:`simulated`
+    Two robots explore overlapping parts of a source map (a real map of the shared data,
+    or a procedural building): each one only maps what its laser sees from random
+    free-space viewpoints (ray casting, :func:`gridmerge.samples.explore`). Robot b maps
+    in its own frame: any rotation, any shift, and another resolution (b's ``resolution``
+    is the source's times the scale). The ground truth is exact. Cases come in tiers of
+    difficulty (:data:`TIERS`), and a share of them are *negative* pairs, maps of two
+    different places that a method must decline.
+:func:`halmstad`
+    The annotated real pairs of the Halmstad data set (``../shared/data/halmstad``),
+    scored with the data set's own protocol (see :mod:`gridmerge.bench.metrics`).
+:func:`paper`
+    The paper's Table I experiment (:func:`gridmerge.samples.table1_pair`), with the
+    paper's own estimate in ``meta`` for the report.
+
+Every data set is a :class:`Dataset`: a sized, re-iterable sequence whose cases are built
+on demand (real maps are large; a run never holds more than one case), each from its own
+seed, so that ``simulated(n=10, seed=s)`` is the first ten cases of ``simulated(n=60,
+seed=s)`` and the same seed always gives the same cases.
+
+Examples
+--------
+>>> from gridmerge.bench import datasets
+>>> ds = datasets.paper()
+>>> case = ds[0]
+>>> case.id, case.positive, case.truth.shape
+('paper/table1-seed0', True, (3, 3))
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable, Iterator, Optional, Sequence
+
+import cv2
+import numpy as np
+
+from .. import samples
+from ..errors import GridMergeError
+from ..grid import OccupancyGrid
+from ..io import load_map
+
+__all__ = [
+    "Case",
+    "Dataset",
+    "Tier",
+    "TIERS",
+    "DATASETS",
+    "PAPER_TABLE1",
+    "default_data_dir",
+    "resolve_data_dir",
+    "simulated",
+    "halmstad",
+    "paper",
+    "load",
+    "measure_overlap",
+    "robot_views_pair",
+    "source_map",
+    "source_names",
+]
+
+#: Names of the data sets :func:`load` knows.
+DATASETS = ("simulated", "halmstad", "paper")
+
+#: The paper's Table I: the true transform and the paper's estimate of it
+#: (rotation degrees, translation x and y in pixels, scale).
+PAPER_TABLE1 = {
+    "truth": {"rotation_deg": 30.0, "x": -86.0, "y": -36.0, "scale": 0.95},
+    "paper": {"rotation_deg": 29.91, "x": -85.79, "y": -36.11, "scale": 0.9503},
+}
+
+_HALMSTAD_ENVIRONMENTS = {"E5": 14, "HIH": 4}
+
+
+# ------------------------------------------------------------------ data folder
+def default_data_dir() -> Path:
+    """``../shared/data`` next to the project root (``src/gridmerge/bench`` -> root)."""
+    return Path(__file__).resolve().parents[3].parent / "shared" / "data"
+
+
+def resolve_data_dir(data_dir=None) -> Optional[Path]:
+    """The shared data folder to use, or ``None`` when there is none.
+
+    An explicit ``data_dir`` must exist (:class:`GridMergeError` otherwise); without one,
+    :func:`default_data_dir` is used when it exists.
+    """
+    if data_dir is not None:
+        p = Path(data_dir)
+        if not p.is_dir():
+            raise GridMergeError(f"data folder not found: {p}")
+        return p
+    p = default_data_dir()
+    return p if p.is_dir() else None
+
+
+# ------------------------------------------------------------------------ cases
+@dataclass
+class Case:
+    """One benchmark pair.
+
+    Attributes
+    ----------
+    id : str
+        Unique within a run, e.g. ``"simulated/0007"``.
+    dataset : str
+        ``"simulated"``, ``"halmstad"``, ``"halmstad-layout"`` or ``"paper"``.
+    a, b : OccupancyGrid
+        The reference map and the map to align onto it.
+    truth : (3, 3) float array or None
+        Maps b's pixels to a's pixels; ``None`` for negative pairs. For the Halmstad pairs
+        it is the least-median fit to the annotated points (informative only: those pairs
+        are scored on the points).
+    positive : bool
+        ``False``: the maps show different places and must not be merged.
+    meta : dict
+        JSON-ready description: ``tier``, ``overlap``, ``rotation_deg``, ``scale``,
+        ``noise``, ``source`` ... (see the generators).
+    """
+
+    id: str
+    dataset: str
+    a: OccupancyGrid
+    b: OccupancyGrid
+    truth: Optional[np.ndarray]
+    positive: bool
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def tier(self) -> str:
+        return str(self.meta.get("tier", "all"))
+
+    def describe(self) -> dict:
+        """A JSON-ready summary (no cell data)."""
+        return {
+            "id": self.id,
+            "dataset": self.dataset,
+            "positive": bool(self.positive),
+            "a_shape": list(self.a.shape),
+            "b_shape": list(self.b.shape),
+            "truth": None if self.truth is None else np.asarray(self.truth, dtype=float).tolist(),
+            "meta": self.meta,
+        }
+
+
+@dataclass
+class Dataset:
+    """A sized, re-iterable sequence of :class:`Case`, each built on demand.
+
+    Attributes
+    ----------
+    name : str
+    size : int
+    build : callable
+        ``build(k) -> Case``; deterministic.
+    notes : list of str
+        What a reader of the results should know (e.g. that the shared data was absent).
+    """
+
+    name: str
+    size: int
+    build: Callable[[int], Case]
+    notes: list = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __getitem__(self, k: int) -> Case:
+        if not -self.size <= k < self.size:
+            raise IndexError(k)
+        return self.build(k % self.size)
+
+    def __iter__(self) -> Iterator[Case]:
+        for k in range(self.size):
+            yield self.build(k)
+
+
+# ---------------------------------------------------------------------- tiers
+@dataclass(frozen=True)
+class Tier:
+    """Difficulty of simulated cases.
+
+    Attributes
+    ----------
+    name : str
+    overlap : (float, float)
+        Range of the overlap fraction aimed at (see :func:`measure_overlap`).
+    scale : (float, float)
+        Range of the scale (b's cell size over a's), drawn log-uniformly.
+    noise : float
+        Sensor noise of both robots: each wall hit is missed with this probability, and
+        each free cell turned into a spurious hit with probability ``noise / 50``.
+    """
+
+    name: str
+    overlap: tuple
+    scale: tuple
+    noise: float
+
+
+#: The tiers of :func:`simulated`. Rotation is uniform over the whole circle in every tier.
+TIERS = {
+    "easy": Tier("easy", (0.5, 0.8), (0.8, 1.25), 0.0),
+    "medium": Tier("medium", (0.35, 0.5), (2 / 3, 1.5), 0.05),
+    "hard": Tier("hard", (0.2, 0.35), (0.5, 2.0), 0.12),
+}
+
+#: Scanner range, in source cells (7.5 m at 0.05 m/cell).
+RANGE_PX = 150.0
+_CLEARANCE = 5.0
+_MIN_GAP = 20  # negative pairs of one source: cells between the two robots' maps
+
+
+# --------------------------------------------------------------- source maps
+def source_names(data_dir=None) -> list:
+    """Source maps of :func:`simulated` available with the shared data (``[]`` without)."""
+    d = resolve_data_dir(data_dir)
+    if d is None:
+        return []
+    names = []
+    if (d / "ros_maps" / "willow-full-0.05.pgm").is_file():
+        names.append("willow")
+    for env, count in _HALMSTAD_ENVIRONMENTS.items():
+        for k in range(1, count + 1):
+            if (d / "halmstad" / env / f"{env}_{k:02d}.png").is_file():
+                names.append(f"halmstad:{env}_{k:02d}")
+    return names
+
+
+def source_map(name: str, data_dir=None) -> OccupancyGrid:
+    """A source map of :func:`simulated` by name.
+
+    ``"willow"`` (the Willow Garage SLAM map), ``"halmstad:E5_03"`` (a Halmstad sensor
+    map, cut to its known cells plus 8 cells), ``"building:SEED:HxW"`` (a procedural
+    building, :func:`gridmerge.samples.building`).
+    """
+    d = resolve_data_dir(data_dir)
+    return _source_map(name, None if d is None else str(d))
+
+
+@lru_cache(maxsize=4)
+def _source_map(name: str, data_dir: Optional[str]) -> OccupancyGrid:
+    if name.startswith("building:"):
+        _, seed, shape = name.split(":")
+        h, w = (int(v) for v in shape.split("x"))
+        return samples.building(int(seed), (h, w))
+    if data_dir is None:
+        raise GridMergeError(f"source map {name!r} needs the shared data folder")
+    d = Path(data_dir)
+    if name == "willow":
+        return load_map(d / "ros_maps" / "willow-full-0.05.pgm")
+    if name.startswith("halmstad:"):
+        stem = name.split(":", 1)[1]
+        env = stem.split("_")[0]
+        g = load_map(d / "halmstad" / env / f"{stem}.png")
+        return _crop_to_known(g, 8)[0]
+    raise GridMergeError(f"unknown source map {name!r}")
+
+
+def _crop_to_known(g: OccupancyGrid, margin: int):
+    rows = np.flatnonzero(g.known.any(1))
+    cols = np.flatnonzero(g.known.any(0))
+    y0, y1 = max(0, rows[0] - margin), min(g.height, rows[-1] + 1 + margin)
+    x0, x1 = max(0, cols[0] - margin), min(g.width, cols[-1] + 1 + margin)
+    return g.replace(data=g.data[y0:y1, x0:x1]), int(x0), int(y0)
+
+
+# ------------------------------------------------------------ geometry helpers
+def measure_overlap(known_a: np.ndarray, known_b: np.ndarray) -> float:
+    """Fraction of the smaller map's known cells that are known in both.
+
+    Both masks are in one frame (the source map's, for :func:`simulated`).
+
+    >>> import numpy as np
+    >>> a = np.zeros((4, 4), bool); a[:, :2] = True
+    >>> b = np.zeros((4, 4), bool); b[:, 1:] = True
+    >>> measure_overlap(a, b)
+    0.5
+    """
+    na, nb = int(known_a.sum()), int(known_b.sum())
+    if min(na, nb) == 0:
+        return 0.0
+    return float((known_a & known_b).sum()) / min(na, nb)
+
+
+def _similarity(theta: float, scale: float, tx: float = 0.0, ty: float = 0.0) -> np.ndarray:
+    c, s = scale * math.cos(theta), scale * math.sin(theta)
+    return np.array([[c, -s, tx], [s, c, ty], [0.0, 0.0, 1.0]])
+
+
+def _shift(x: float, y: float) -> np.ndarray:
+    return np.array([[1.0, 0.0, x], [0.0, 1.0, y], [0.0, 0.0, 1.0]])
+
+
+class _World:
+    """A source map prepared for ray casting: where a robot can stand, what it sees."""
+
+    def __init__(self, grid: OccupancyGrid, name: str):
+        self.grid = grid
+        self.name = name
+        H, W = grid.shape
+        free = grid.free().astype(np.uint8)
+        dist = cv2.distanceTransform(np.pad(free, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
+        clear = (dist >= _CLEARANCE).astype(np.uint8)
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(clear, connectivity=4)
+        if count <= 1:
+            raise GridMergeError(f"source map {name} has no free space for a robot")
+        main = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        self.region = labels == main
+        self.area = int(stats[main, cv2.CC_STAT_AREA])
+        self._views: dict = {}
+
+    def viewpoints(self, rng: np.random.Generator) -> np.ndarray:
+        k = int(np.clip(round(self.area / 4000.0), 16, 100))
+        return samples.random_viewpoints(self.grid, k, rng=rng, region=self.region, clearance=_CLEARANCE)
+
+    def view(self, vp) -> tuple[np.ndarray, np.ndarray]:
+        """Flat indices of the cells seen free and seen occupied from one viewpoint."""
+        key = (float(vp[0]), float(vp[1]))
+        if key not in self._views:
+            H, W = self.grid.shape
+            r = int(math.ceil(RANGE_PX)) + 2
+            x, y = int(round(vp[0])), int(round(vp[1]))
+            x0, x1 = max(0, x - r), min(W, x + r + 1)
+            y0, y1 = max(0, y - r), min(H, y + r + 1)
+            sub = OccupancyGrid(self.grid.data[y0:y1, x0:x1], resolution=self.grid.resolution)
+            seen = samples.explore(sub, [[vp[0] - x0, vp[1] - y0]], max_range_px=RANGE_PX)
+            yy, xx = np.nonzero(~np.isnan(seen.data))
+            occ = seen.data[yy, xx] > 0.5
+            flat = (yy + y0).astype(np.int64) * W + (xx + x0)
+            self._views[key] = (flat[~occ], flat[occ])
+        return self._views[key]
+
+    def known(self, vps) -> np.ndarray:
+        H, W = self.grid.shape
+        m = np.zeros(H * W, dtype=bool)
+        for vp in vps:
+            f, o = self.view(vp)
+            m[f] = True
+            m[o] = True
+        return m.reshape(H, W)
+
+    def seen(self, vps) -> np.ndarray:
+        """What a robot maps from ``vps``: free 0, occupied 1, unknown NaN (source frame)."""
+        H, W = self.grid.shape
+        out = np.full(H * W, np.nan, dtype=np.float32)
+        for vp in vps:
+            f, o = self.view(vp)
+            out[f] = 0.0
+            out[o] = 1.0
+        return out.reshape(H, W)
+
+
+def _add_noise(data: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
+    """Missed hits (wall cells left unknown) and spurious hits (free cells marked occupied)."""
+    out = data.copy()
+    if noise <= 0:
+        return out
+    with np.errstate(invalid="ignore"):
+        hit = np.flatnonzero(out.ravel() > 0.5)
+        free = np.flatnonzero(out.ravel() < 0.5)
+    flat = out.reshape(-1)
+    flat[hit[rng.random(hit.size) < noise]] = np.nan
+    flat[free[rng.random(free.size) < noise / 50.0]] = 1.0
+    return out
+
+
+def _world_in_frame(world: OccupancyGrid, M: np.ndarray, shape: tuple, scale: float) -> OccupancyGrid:
+    """The world as a robot with cells ``scale`` times the world's sees it, in its frame.
+
+    ``M`` maps the robot's pixels to the world's. A cell is occupied when any wall of the
+    world falls in its footprint (sampled at most 1/1.6 world cells apart, so that no
+    wall, however thin, slips between samples), unknown when the world is unknown at its
+    centre, free otherwise.
+    """
+    H, W = shape
+    occ = world.occupied().astype(np.uint8)
+    known = world.known.astype(np.uint8)
+    flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    kw = dict(flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    M2 = np.ascontiguousarray(M[:2])
+    k_out = cv2.warpAffine(known, M2, (W, H), **kw) > 0
+    n = 1 if scale <= 1.0 else int(math.ceil(scale * 1.6)) + 1
+    offsets = [0.0] if n == 1 else list(np.linspace(-0.5, 0.5, n))
+    o_out = np.zeros((H, W), dtype=bool)
+    for dy in offsets:
+        for dx in offsets:
+            Md = M @ _shift(dx, dy)
+            o_out |= cv2.warpAffine(occ, np.ascontiguousarray(Md[:2]), (W, H), **kw) > 0
+    data = np.full((H, W), np.nan, dtype=np.float32)
+    data[k_out] = 0.0
+    data[o_out & k_out] = 1.0
+    return OccupancyGrid(data, resolution=world.resolution * scale)
+
+
+def _crop_box(known: np.ndarray, margins) -> tuple[int, int, int, int]:
+    ys, xs = np.nonzero(known)
+    H, W = known.shape
+    x0 = max(int(xs.min()) - int(margins[0]), 0)
+    y0 = max(int(ys.min()) - int(margins[1]), 0)
+    x1 = min(int(xs.max()) + 1 + int(margins[2]), W)
+    y1 = min(int(ys.max()) + 1 + int(margins[3]), H)
+    return x0, y0, x1, y1
+
+
+def _robot_maps(
+    world: _World,
+    vps_a,
+    vps_b,
+    rng: np.random.Generator,
+    *,
+    rotation_deg: float,
+    scale: float,
+    noise: float,
+    world_b: Optional[_World] = None,
+):
+    """Maps of robot a (the source's frame, cropped) and robot b (its own frame).
+
+    Robot b explores ``world_b`` (default: ``world``). Returns ``a, b, b_to_source,
+    offset_a, known_b_in_source`` where ``b_to_source`` maps b's pixels to the pixels of
+    its source map and ``offset_a`` is a's crop offset in ``world``.
+    """
+    wb = world if world_b is None else world_b
+    src = world.grid
+    # Robot a: the source's frame, cut to what it knows plus 5-20 unknown cells.
+    a_clean = world.seen(vps_a)
+    ka = ~np.isnan(a_clean)
+    x0, y0, x1, y1 = _crop_box(ka, rng.integers(5, 21, size=4))
+    a_data = _add_noise(a_clean[y0:y1, x0:x1], noise, rng)
+    corner = src.pixel_to_metric([[x0 - 0.5, y1 - 0.5]])[0]
+    a = OccupancyGrid(a_data, resolution=src.resolution, origin=(float(corner[0]), float(corner[1]), src.origin[2]))
+
+    # Robot b: its own frame, rotated, shifted, cells `scale` times the source's.
+    theta = math.radians(rotation_deg)
+    A = _similarity(theta, scale)
+    kb_src = wb.known(vps_b)
+    ys, xs = np.nonzero(kb_src)
+    Ainv = np.linalg.inv(A)
+    q = np.stack([xs, ys, np.ones_like(xs)], axis=0).astype(float)
+    p = (Ainv @ q)[:2]
+    pad = 25.0
+    pmin = p.min(axis=1) - pad
+    M = A @ _shift(pmin[0], pmin[1])  # b canvas pixels -> source pixels
+    shape = (int(math.ceil(p[1].max() - pmin[1] + pad)) + 1, int(math.ceil(p[0].max() - pmin[0] + pad)) + 1)
+    wb_frame = _world_in_frame(wb.grid, M, shape, scale)
+    Minv = np.linalg.inv(M)
+    vb = (np.c_[np.asarray(vps_b, float), np.ones(len(vps_b))] @ Minv.T)[:, :2]
+    b_full = samples.explore(wb_frame, vb, max_range_px=RANGE_PX / scale)
+    kb = b_full.known
+    bx0, by0, bx1, by1 = _crop_box(kb, rng.integers(5, 21, size=4))
+    b_clean = b_full.data[by0:by1, bx0:bx1]
+    M = M @ _shift(bx0, by0)
+    b_data = _add_noise(b_clean, noise, rng)
+    b = OccupancyGrid(b_data, resolution=wb.grid.resolution * scale)
+    # b's known cells seen from the source's cells (nearest b cell of each source cell).
+    Hs, Ws = wb.grid.shape
+    kb_in_src = cv2.warpAffine(
+        (~np.isnan(b_clean)).astype(np.uint8),
+        np.ascontiguousarray(np.linalg.inv(M)[:2]),
+        (Ws, Hs),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    ) > 0
+    return a, b, M, (x0, y0), ka, kb_in_src
+
+
+def robot_views_pair(
+    world: OccupancyGrid,
+    views_a,
+    views_b,
+    *,
+    rotation_deg: float,
+    scale: float,
+    noise: float = 0.0,
+    rng=0,
+) -> tuple[OccupancyGrid, OccupancyGrid, np.ndarray, dict]:
+    """Maps of two robots scanning ``world`` from given viewpoints, with the exact truth.
+
+    Robot a maps in ``world``'s frame (cut to its known cells plus 5-20 unknown cells);
+    robot b in its own frame, rotated by ``rotation_deg``, with cells ``scale`` times the
+    world's: it ray-casts, at its own resolution, a copy of the world resampled into its
+    frame (a cell is a wall when any wall falls in it). Both scan 360 degrees up to
+    :data:`RANGE_PX` world cells (:func:`gridmerge.samples.explore`), then get
+    ``noise`` (missed and spurious hits).
+
+    Parameters
+    ----------
+    world : OccupancyGrid
+        The source map.
+    views_a, views_b : (N, 2) array_like
+        Viewpoints in ``world``'s pixels.
+    rotation_deg, scale : float
+    noise : float
+    rng : int or numpy.random.Generator
+
+    Returns
+    -------
+    a, b : OccupancyGrid
+    truth : (3, 3) float array
+        b's pixels -> a's pixels.
+    meta : dict
+        ``overlap`` (:func:`measure_overlap` of the two robots' known cells before noise,
+        in the world's frame, b's known cells taken at the nearest b cell of each world
+        cell), ``a_offset`` (a's pixel ``(0, 0)`` is world pixel ``a_offset``),
+        ``b_to_source`` (3x3), ``rotation_deg``, ``scale``, ``noise``.
+    """
+    gen = np.random.default_rng(rng)
+    w = _World(world, "world")
+    a, b, M, off, ka, kb = _robot_maps(w, views_a, views_b, gen, rotation_deg=rotation_deg, scale=scale, noise=noise)
+    truth = _shift(-off[0], -off[1]) @ M
+    meta = {
+        "overlap": measure_overlap(ka, kb),
+        "a_offset": [int(off[0]), int(off[1])],
+        "b_to_source": M.tolist(),
+        "rotation_deg": float(rotation_deg),
+        "scale": float(scale),
+        "noise": float(noise),
+    }
+    return a, b, truth, meta
+
+
+# ------------------------------------------------------------------ simulated
+def _split_views(world: _World, vps: np.ndarray, rng: np.random.Generator, target: float, bounds, *, negative: bool = False):
+    """Viewpoints of robots a and b: the pool ordered along a random direction, a takes
+    the first ones, b the last ones, as many as brings the overlap nearest ``target``.
+
+    Returns ``(vps_a, vps_b, overlap_estimate, direction_deg)`` of the best of a few
+    random directions (the first whose overlap falls in ``bounds``), or ``None`` for a
+    negative split that cannot keep the maps ``_MIN_GAP`` cells apart.
+    """
+    K = len(vps)
+    m = max(3, K // 5)
+    best = None
+    kernel = np.ones((2 * _MIN_GAP + 1, 2 * _MIN_GAP + 1), np.uint8)
+    for _attempt in range(4):
+        phi = rng.uniform(0, 2 * math.pi)
+        order = np.argsort(vps @ np.array([math.cos(phi), math.sin(phi)]), kind="stable")
+        c = int(rng.integers(int(0.4 * K), int(0.6 * K) + 1))
+        h_lo, h_hi = max(m - c, c - (K - m)), min(K - c, c)
+        if h_lo > h_hi:
+            continue
+
+        def split(h):
+            return vps[order[: c + h]], vps[order[c - h :]]
+
+        if negative:
+            def apart(h):
+                va, vb = split(h)
+                ka = cv2.dilate(world.known(va).astype(np.uint8), kernel) > 0
+                return not (ka & world.known(vb)).any()
+
+            if not apart(h_lo):
+                continue
+            lo, hi = h_lo, h_hi  # largest h whose maps stay apart
+            while lo < hi:
+                mid = (lo + hi + 1) // 2
+                if apart(mid):
+                    lo = mid
+                else:
+                    hi = mid - 1
+            va, vb = split(lo)
+            return va, vb, 0.0, math.degrees(phi)
+
+        cache: dict = {}
+
+        def ov(h):
+            if h not in cache:
+                va, vb = split(h)
+                cache[h] = measure_overlap(world.known(va), world.known(vb))
+            return cache[h]
+
+        lo, hi = h_lo, h_hi  # overlap grows with h: bisect for the target
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            if ov(mid) < target:
+                lo = mid
+            else:
+                hi = mid
+        h = min((lo, hi), key=lambda v: abs(ov(v) - target))
+        o = ov(h)
+        miss = max(bounds[0] - o, o - bounds[1], 0.0)
+        if best is None or miss < best[0]:
+            va, vb = split(h)
+            best = (miss, va, vb, o, math.degrees(phi))
+        if miss == 0.0:
+            break
+    if best is None:
+        return None
+    return best[1], best[2], best[3], best[4]
+
+
+def _pick_source(rng: np.random.Generator, available: list, building_shapes, exclude: str = "") -> str:
+    kinds = [k for k in ("willow", "halmstad", "building") if any(s == k or s.startswith(k + ":") for s in available)]
+    weights = {"willow": 0.3, "halmstad": 0.3, "building": 0.4}
+    for _ in range(20):
+        p = np.array([weights[k] for k in kinds])
+        kind = kinds[int(rng.choice(len(kinds), p=p / p.sum()))]
+        if kind == "building":
+            shape = building_shapes[int(rng.integers(len(building_shapes)))]
+            name = f"building:{int(rng.integers(1, 1 << 30))}:{int(shape[0])}x{int(shape[1])}"
+        elif kind == "willow":
+            name = "willow"
+        else:
+            hal = [s for s in available if s.startswith("halmstad:")]
+            name = hal[int(rng.integers(len(hal)))]
+        if name != exclude and not (exclude.startswith("halmstad:") and name.startswith("halmstad:") and name.split("_")[0] == exclude.split("_")[0]):
+            return name
+    return f"building:{int(rng.integers(1, 1 << 30))}:{int(building_shapes[0][0])}x{int(building_shapes[0][1])}"
+
+
+def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
+    return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+
+
+def simulated(
+    n: int = 60,
+    seed: int = 0,
+    *,
+    data_dir=None,
+    sources: Optional[Sequence[str]] = None,
+    tiers: Sequence[str] = ("easy", "medium", "hard"),
+    negatives: float = 0.2,
+    building_shapes: Sequence[Sequence[int]] = ((560, 760), (720, 960)),
+) -> Dataset:
+    """Simulated robot pairs with exact ground truth.
+
+    Case ``k`` is built from its own generator (seed ``[seed, k]``). A share ``negatives``
+    of the cases (evenly spread: with 0.2, every fifth) are negative pairs; the others
+    cycle through ``tiers`` (:data:`TIERS`).
+
+    A positive case: a source map is drawn (Willow Garage 30 %, a Halmstad sensor map
+    30 %, a procedural building 40 %; only buildings without the shared data); a pool of
+    scanner positions is drawn in its main free space (one per 4000 cells of it, 16 to
+    100), ordered along a random direction; robot a takes the first ones, robot b the
+    last ones, as many as brings the overlap of their known cells nearest a target drawn
+    in the tier's range (a few directions are tried). Each robot ray-casts from its
+    positions (:func:`robot_views_pair`); b's frame has a uniform random rotation and a
+    log-uniform scale in the tier's range. The overlap actually obtained is measured and
+    recorded in ``meta["overlap"]`` (it can fall a little outside the tier's range).
+
+    A negative case is either two distant parts of one source (the two robots' known
+    cells at least 20 cells apart, ``meta["negative_kind"] = "distant-parts"``) or parts
+    of two different sources (``"different-places"``), b again rotated and scaled
+    (medium tier's scale range and noise).
+
+    Parameters
+    ----------
+    n : int
+        Number of cases.
+    seed : int
+    data_dir : path, optional
+        The shared data folder (default: :func:`default_data_dir` when it exists).
+    sources : sequence of str, optional
+        Kinds of source maps: ``"building"``, ``"willow"``, ``"halmstad"`` (default: all
+        that are available).
+    tiers : sequence of str
+        Tiers of the positive cases, cycled.
+    negatives : float
+        Share of negative cases, in ``[0, 1)``.
+    building_shapes : sequence of (int, int)
+        Shapes of the procedural buildings.
+
+    Returns
+    -------
+    Dataset
+        Cases ``"simulated/0000"`` ...; ``meta``: ``tier`` (``"negative"`` for negatives),
+        ``source`` (and ``source_b``), ``overlap``, ``overlap_target``, ``rotation_deg``,
+        ``scale``, ``noise``, ``views`` (a, b), ``direction_deg``, ``a_offset``,
+        ``b_to_source``.
+    """
+    n = int(n)
+    if n < 0:
+        raise GridMergeError(f"n must be >= 0, got {n}")
+    for t in tiers:
+        if t not in TIERS:
+            raise GridMergeError(f"unknown tier {t!r} (use {', '.join(TIERS)})")
+    if not 0.0 <= negatives < 1.0:
+        raise GridMergeError(f"negatives must be in [0, 1), got {negatives}")
+    d = resolve_data_dir(data_dir)
+    shared = source_names(d) if d is not None else []
+    wanted = set(sources) if sources is not None else {"building", "willow", "halmstad"}
+    unknown = wanted - {"building", "willow", "halmstad"}
+    if unknown:
+        raise GridMergeError(f"unknown source kinds {sorted(unknown)} (use building, willow, halmstad)")
+    available = [s for s in shared if s.split(":")[0] in wanted]
+    if "building" in wanted:
+        available.append("building")
+    notes = []
+    if d is None:
+        notes.append(f"shared data not found at {default_data_dir()}: simulated cases use procedural buildings only")
+        available = ["building"]
+    elif not available:
+        raise GridMergeError(f"no source maps of kinds {sorted(wanted)} in {d}")
+    data_key = None if d is None else str(d)
+    shapes = [tuple(int(v) for v in s) for s in building_shapes]
+
+    def is_negative(k: int) -> bool:
+        return math.floor((k + 1) * negatives) > math.floor(k * negatives)
+
+    def build(k: int) -> Case:
+        rng = np.random.default_rng([int(seed), int(k), 7])
+        if is_negative(k):
+            return _negative_case(k, rng, available, data_key, shapes)
+        j = k - sum(is_negative(i) for i in range(k))
+        tier = TIERS[tiers[j % len(tiers)]]
+        return _positive_case(k, rng, tier, available, data_key, shapes)
+
+    return Dataset("simulated", n, build, notes)
+
+
+def _world(name: str, data_key: Optional[str]) -> _World:
+    return _world_cached(name, data_key)
+
+
+@lru_cache(maxsize=2)
+def _world_cached(name: str, data_key: Optional[str]) -> _World:
+    # Only the geometry is cached; the views cache grows with the viewpoints used.
+    return _World(_source_map(name, data_key), name)
+
+
+def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes) -> Case:
+    name = _pick_source(rng, available, shapes)
+    world = _world(name, data_key)
+    world._views.clear()
+    vps = world.viewpoints(rng)
+    target = float(rng.uniform(*tier.overlap))
+    va, vb, _est, phi = _split_views(world, vps, rng, target, tier.overlap)
+    rot = float(rng.uniform(-180.0, 180.0))
+    scale = _log_uniform(rng, *tier.scale)
+    a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise)
+    world._views.clear()
+    truth = _shift(-off[0], -off[1]) @ M
+    cid = f"simulated/{k:04d}"
+    meta = {
+        "tier": tier.name,
+        "source": name,
+        "overlap": round(measure_overlap(ka, kb), 6),
+        "overlap_target": round(target, 6),
+        "rotation_deg": rot,
+        "scale": scale,
+        "noise": tier.noise,
+        "views": [len(va), len(vb)],
+        "direction_deg": phi,
+        "range_px": RANGE_PX,
+        "a_offset": [int(off[0]), int(off[1])],
+        "b_to_source": M.tolist(),
+    }
+    return Case(cid, "simulated", a.replace(name=f"{cid} a"), b.replace(name=f"{cid} b"), truth, True, meta)
+
+
+def _negative_case(k: int, rng, available, data_key, shapes) -> Case:
+    tier = TIERS["medium"]
+    rot = float(rng.uniform(-180.0, 180.0))
+    scale = _log_uniform(rng, *tier.scale)
+    name = _pick_source(rng, available, shapes)
+    world = _world(name, data_key)
+    world._views.clear()
+    vps = world.viewpoints(rng)
+    kind = "distant-parts" if rng.random() < 0.5 else "different-places"
+    split = _split_views(world, vps, rng, 0.0, (0.0, 0.0), negative=True) if kind == "distant-parts" else None
+    meta: dict = {"tier": "negative", "source": name, "rotation_deg": rot, "scale": scale, "noise": tier.noise, "range_px": RANGE_PX}
+    if split is not None:
+        va, vb, _, phi = split
+        a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise)
+        meta.update(negative_kind="distant-parts", overlap=measure_overlap(ka, kb), views=[len(va), len(vb)], direction_deg=phi)
+    else:
+        # Two different places: a from this source, b from another one.
+        other = _pick_source(rng, available, shapes, exclude=name)
+        K = len(vps)
+        order = np.argsort(vps @ rng.normal(size=2), kind="stable")
+        va = vps[order[: max(3, int(rng.uniform(0.4, 0.7) * K))]]
+        world_b = _world_cached_pair(other, data_key)
+        world_b._views.clear()
+        vps_b = world_b.viewpoints(rng)
+        order_b = np.argsort(vps_b @ rng.normal(size=2), kind="stable")
+        vb = vps_b[order_b[: max(3, int(rng.uniform(0.4, 0.7) * len(vps_b)))]]
+        a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise, world_b=world_b)
+        world_b._views.clear()
+        meta.update(negative_kind="different-places", source_b=other, overlap=0.0, views=[len(va), len(vb)])
+    world._views.clear()
+    cid = f"simulated/{k:04d}"
+    return Case(cid, "simulated", a.replace(name=f"{cid} a"), b.replace(name=f"{cid} b"), None, False, meta)
+
+
+@lru_cache(maxsize=1)
+def _world_cached_pair(name: str, data_key: Optional[str]) -> _World:
+    return _World(_source_map(name, data_key), name)
+
+
+# ------------------------------------------------------------------- halmstad
+def halmstad(
+    data_dir=None,
+    *,
+    kinds: Sequence[str] = ("sensor", "layout"),
+    environments: Sequence[str] = ("E5", "HIH"),
+    limit: Optional[int] = None,
+) -> Dataset:
+    """The annotated real pairs of the Halmstad data set.
+
+    Sensor pairs (two Tango maps) are data set ``"halmstad"``; layout pairs (a sensor map
+    against the RGBA blueprint) ``"halmstad-layout"``, reported separately.
+
+    Parameters
+    ----------
+    data_dir : path, optional
+        The shared data folder (default: :func:`default_data_dir`).
+    kinds : sequence of {"sensor", "layout"}
+    environments : sequence of {"E5", "HIH"}
+    limit : int, optional
+        At most this many pairs of each kind and environment (the first ones).
+
+    Returns
+    -------
+    Dataset
+        Cases ``"halmstad/E5_01-E5_02"`` ...; ``truth`` is the annotation's least-median
+        fit (3x3); ``meta``: ``environment``, ``kind``, ``map_a``, ``map_b``,
+        ``points_a``, ``points_b``, ``fit_median_residual_px`` and the protocol's
+        ``threshold_px = max(20, 2 * fit_median_residual_px)``, ``protocol = "halmstad"``.
+
+    Raises
+    ------
+    GridMergeError
+        When the data folder or the annotations are missing.
+    """
+    d = resolve_data_dir(data_dir)
+    if d is None:
+        raise GridMergeError(f"the Halmstad data needs the shared data folder ({default_data_dir()} not found)")
+    root = d / "halmstad"
+    entries = []
+    for env in environments:
+        f = root / f"{env}_pairs.json"
+        if not f.is_file():
+            raise GridMergeError(f"Halmstad annotations not found: {f}")
+        doc = json.loads(f.read_text())
+        counts: dict = {}
+        for p in doc["pairs"]:
+            kind = p.get("kind", "sensor")
+            if kind not in kinds:
+                continue
+            counts[kind] = counts.get(kind, 0) + 1
+            if limit is not None and counts[kind] > limit:
+                continue
+            entries.append((env, p))
+    # Sensor pairs first, then layout pairs (keeps the file order within each).
+    entries.sort(key=lambda e: 0 if e[1].get("kind", "sensor") == "sensor" else 1)
+    root_s = str(root)
+
+    def build(k: int) -> Case:
+        env, p = entries[k]
+        kind = p.get("kind", "sensor")
+        a = _halmstad_map(root_s, env, p["a"])
+        b = _halmstad_map(root_s, env, p["b"])
+        fit = np.vstack([np.asarray(p["fit_b_to_a"], dtype=float), [0.0, 0.0, 1.0]])
+        resid = float(p["fit_median_residual_px"])
+        fit_rot = math.degrees(math.atan2(fit[1, 0], fit[0, 0]))
+        meta = {
+            "tier": kind,
+            "environment": env,
+            "kind": kind,
+            "map_a": p["a"],
+            "map_b": p["b"],
+            "points_a": p["points_a"],
+            "points_b": p["points_b"],
+            "fit_median_residual_px": resid,
+            "threshold_px": max(20.0, 2.0 * resid),
+            "protocol": "halmstad",
+            "rotation_deg": fit_rot,
+            "scale": float(math.hypot(fit[0, 0], fit[1, 0])),
+            "source": f"halmstad:{env}",
+        }
+        dataset = "halmstad" if kind == "sensor" else "halmstad-layout"
+        return Case(f"{dataset}/{p['a']}-{p['b']}", dataset, a, b, fit, True, meta)
+
+    return Dataset("halmstad", len(entries), build, [])
+
+
+def _halmstad_map(root: str, env: str, stem: str) -> OccupancyGrid:
+    if stem.endswith("layout"):
+        return _halmstad_layout(root, env, stem)  # decoding the RGBA blueprint is slow: cached
+    return load_map(Path(root) / env / f"{stem}.png")
+
+
+@lru_cache(maxsize=2)
+def _halmstad_layout(root: str, env: str, stem: str) -> OccupancyGrid:
+    return load_map(Path(root) / env / f"{stem}.png")
+
+
+# ---------------------------------------------------------------------- paper
+def paper(seeds: Sequence[int] = (0,)) -> Dataset:
+    """The paper's Table I experiment (:func:`gridmerge.samples.table1_pair`).
+
+    One case per building seed; ``meta["table1"]`` holds :data:`PAPER_TABLE1` (the true
+    transform and the paper's estimate) for the report.
+    """
+    seeds = [int(s) for s in seeds]
+
+    def build(k: int) -> Case:
+        s = seeds[k]
+        a, b, truth = samples.table1_pair(s)
+        meta = {
+            "tier": "table1",
+            "seed": s,
+            "rotation_deg": samples.TABLE1_THETA_DEG,
+            "scale": samples.TABLE1_SCALE,
+            "translation": list(samples.TABLE1_TRANSLATION),
+            "source": f"building:{s}:480x640",
+            "table1": PAPER_TABLE1,
+        }
+        return Case(f"paper/table1-seed{s}", "paper", a, b, np.asarray(truth, dtype=float), True, meta)
+
+    return Dataset("paper", len(seeds), build, [])
+
+
+# ----------------------------------------------------------------------- load
+def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = False, data_dir=None) -> Dataset:
+    """A data set by name, with the benchmark's default sizes.
+
+    ``simulated``: ``n`` cases (default 60; 6 with ``quick``); ``halmstad``: every
+    annotated pair (with ``quick``: the first 2 sensor pairs and the first layout pair of
+    E5 and of HIH), or the first ``n`` of each kind and environment; ``paper``: seeds 0-4
+    (seed 0 with ``quick``).
+
+    Raises
+    ------
+    GridMergeError
+        Unknown name; ``halmstad`` without the shared data.
+    """
+    if name == "simulated":
+        return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir)
+    if name == "halmstad":
+        if quick:
+            sensor = halmstad(data_dir, kinds=("sensor",), limit=2)
+            layout = halmstad(data_dir, kinds=("layout",), limit=1)
+            return _concat("halmstad", [sensor, layout])
+        return halmstad(data_dir, limit=n)
+    if name == "paper":
+        return paper((0,) if quick else tuple(range(5)))
+    raise GridMergeError(f"unknown data set {name!r} (use {', '.join(DATASETS)})")
+
+
+def _concat(name: str, parts: Sequence[Dataset]) -> Dataset:
+    index = [(i, k) for i, p in enumerate(parts) for k in range(len(p))]
+
+    def build(j: int) -> Case:
+        i, k = index[j]
+        return parts[i][k]
+
+    return Dataset(name, len(index), build, [note for p in parts for note in p.notes])

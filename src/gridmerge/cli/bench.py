@@ -1,0 +1,234 @@
+"""``gridmerge bench``: run the benchmark suite, compare two runs.
+
+::
+
+    gridmerge bench [run] [--dataset simulated|halmstad|paper|all ...] [--methods sift,ransac,...]
+                          [--n N] [--seed S] [--quick] [--out DIR] [--data DIR] [--progress] [--force]
+    gridmerge bench compare RUN1 RUN2
+
+The command line wires this module in with :func:`add_parser` and calls :func:`run`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+from ..errors import GridMergeError
+
+__all__ = ["add_parser", "run", "ProgressBar"]
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+
+_DATASET_CHOICES = ("simulated", "halmstad", "paper", "all")
+
+
+class _BenchUsageError(GridMergeError):
+    pass
+
+
+def _taken(parser: argparse.ArgumentParser, flag: str) -> Optional[str]:
+    """The destination of ``flag`` if ``parser`` already has it (from a parent), else None."""
+    action = getattr(parser, "_option_string_actions", {}).get(flag)
+    return None if action is None else action.dest
+
+
+def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
+    """Add the options of ``bench run`` to ``p``.
+
+    With ``suppress``, absent options leave the values parsed before them alone (the
+    options are accepted both before and after the word ``run``). An option that a parent
+    parser already defines (say ``--seed``) is not redefined: the parent's is used, and
+    the returned alias maps our destination to the parent's.
+    """
+    aliases = {}
+
+    def add(flag: str, dest: str, default, **kw):
+        other = _taken(p, flag)
+        if other is not None:
+            aliases[dest] = other
+            return
+        p.add_argument(flag, dest=dest, default=argparse.SUPPRESS if suppress else default, **kw)
+
+    add(
+        "--dataset",
+        "bench_datasets",
+        None,
+        action="append",
+        choices=_DATASET_CHOICES,
+        metavar="NAME",
+        help="data set to run: simulated, halmstad, paper or all (default: all); repeatable",
+    )
+    add(
+        "--methods",
+        "bench_methods",
+        None,
+        metavar="M1,M2",
+        help="comma-separated alignment methods (default: every registered one); unregistered names are skipped with a warning",
+    )
+    add("--n", "bench_n", None, type=int, metavar="N", help="number of simulated cases (default 60; 6 with --quick)")
+    add("--seed", "bench_seed", 0, type=int, metavar="S", help="seed of the cases and of every alignment (default 0)")
+    add("--quick", "bench_quick", False, action="store_true", help="a small, fast slice of every data set (CI)")
+    add("--out", "bench_out", None, metavar="DIR", help="results folder (default: bench-YYYYmmdd-HHMMSS)")
+    add("--data", "bench_data", None, metavar="DIR", help="shared data folder (default: ../shared/data next to the project)")
+    add("--progress", "bench_progress", False, action="store_true", help="show a progress bar on stderr even when it is not a terminal")
+    add("--force", "bench_force", False, action="store_true", help="replace the results in an existing folder")
+    add("--no-plots", "bench_plots", True, action="store_false", help="do not draw the PNG plots")
+    return aliases
+
+
+def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> argparse.ArgumentParser:
+    """Add the ``bench`` sub-command (with ``run``, the default, and ``compare``).
+
+    Parameters
+    ----------
+    subparsers
+        The ``add_subparsers()`` object of the ``gridmerge`` parser.
+    parents : sequence of ArgumentParser
+        Parsers whose options ``bench`` and its sub-commands share (e.g. ``--debug``). When
+        a parent already defines one of bench's options (e.g. ``--seed``), the parent's is
+        used.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The ``bench`` parser.
+    """
+    parents = list(parents)
+    p = subparsers.add_parser(
+        "bench",
+        parents=parents,
+        help="benchmark the alignment methods (accuracy, robustness, speed)",
+        description="Run every alignment method on simulated pairs with exact truth, the annotated Halmstad "
+        "pairs and the paper's Table I experiment, and write a results folder (cases.jsonl, summary.json, "
+        "results.md, config.json, plots). 'bench compare RUN1 RUN2' shows the differences of two runs.",
+    )
+    aliases = _run_options(p, suppress=False)
+    p.set_defaults(bench_command="run", bench_run1=None, bench_run2=None, bench_aliases=aliases)
+    sub = p.add_subparsers(dest="bench_command", metavar="{run,compare}")
+    pr = sub.add_parser("run", parents=parents, help="run the benchmark (default)", description="Run the benchmark.")
+    _run_options(pr, suppress=True)
+    pc = sub.add_parser(
+        "compare",
+        parents=parents,
+        help="compare the summaries of two runs",
+        description="Print a Markdown table of the summary differences between two results folders (RUN2 - RUN1).",
+    )
+    pc.add_argument("bench_run1", metavar="RUN1", help="results folder of the first run")
+    pc.add_argument("bench_run2", metavar="RUN2", help="results folder of the second run")
+    return p
+
+
+class ProgressBar:
+    """A one-line progress bar on a stream (stderr), redrawn at most 10 times a second."""
+
+    def __init__(self, stream=None, width: int = 28):
+        self.stream = sys.stderr if stream is None else stream
+        self.width = width
+        self.t0 = time.monotonic()
+        self._last = 0.0
+        self._shown = False
+
+    def __call__(self, done: int, total: int, label: str) -> None:
+        now = time.monotonic()
+        if done < total and now - self._last < 0.1 and self._shown:
+            return
+        self._last = now
+        frac = done / total if total else 1.0
+        fill = int(round(self.width * frac))
+        elapsed = now - self.t0
+        eta = f", {elapsed / done * (total - done):.0f} s left" if 0 < done < total else ""
+        line = f"\r[{'#' * fill}{'.' * (self.width - fill)}] {done}/{total} {elapsed:.0f} s{eta} {label}"
+        self.stream.write(line[:118].ljust(118) if done < total else line.rstrip() + "\n")
+        self.stream.flush()
+        self._shown = True
+
+
+def _default_out() -> Path:
+    return Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+
+
+def _value(args, dest: str, default=None):
+    dest = (getattr(args, "bench_aliases", None) or {}).get(dest, dest)
+    return getattr(args, dest, default)
+
+
+def _cmd_run(args) -> int:
+    from ..bench import runner
+
+    for dest, default in (
+        ("bench_datasets", None), ("bench_methods", None), ("bench_n", None), ("bench_seed", 0),
+        ("bench_quick", False), ("bench_out", None), ("bench_data", None), ("bench_progress", False),
+        ("bench_force", False), ("bench_plots", True),
+    ):
+        setattr(args, dest, _value(args, dest, default))
+
+    datasets = args.bench_datasets or ["all"]
+    if "all" in datasets:
+        datasets = ["all"]
+    if args.bench_n is not None and args.bench_n < 0:
+        raise _BenchUsageError(f"--n must be >= 0, got {args.bench_n}")
+    methods = args.bench_methods
+    if methods is not None and not [m for m in methods.split(",") if m.strip()]:
+        raise _BenchUsageError("--methods needs at least one method name")
+    out = Path(args.bench_out) if args.bench_out else _default_out()
+    show = bool(args.bench_progress) or sys.stderr.isatty()
+    bar: Optional[ProgressBar] = ProgressBar() if show else None
+    bench = runner.run(
+        methods,
+        datasets,
+        seed=args.bench_seed,
+        out_dir=out,
+        progress=bar,
+        n=args.bench_n,
+        quick=args.bench_quick,
+        data_dir=args.bench_data,
+        plots=args.bench_plots,
+        overwrite=args.bench_force,
+    )
+    for w in bench.warnings:
+        print(f"gridmerge: warning: {w}", file=sys.stderr)
+    _print_summary(bench)
+    print(f"results: {out}")
+    return EXIT_OK
+
+
+def _print_summary(bench) -> None:
+    rows = [r for r in bench.rows if r["tier"] == "all"]
+    if not rows:
+        return
+    header = f"{'data set':<16} {'method':<10} {'pairs':>5} {'success':>8} {'declined':>8} {'wrong':>6} {'false':>6} {'med err':>8} {'med s':>6}"
+    print(header)
+    for r in rows:
+        def pct(v):
+            return "-" if v is None else f"{100 * v:.0f}%"
+
+        err = "-" if r["median_error_px"] is None else f"{r['median_error_px']:.2f}"
+        t = "-" if r["median_time_s"] is None else f"{r['median_time_s']:.2f}"
+        print(
+            f"{r['dataset']:<16} {r['method']:<10} {r['cases']:>5} {pct(r['success_rate']):>8} {pct(r['declined_rate']):>8} "
+            f"{pct(r['wrong_rate']):>6} {pct(r['false_merge_rate']):>6} {err:>8} {t:>6}"
+        )
+
+
+def _cmd_compare(args) -> int:
+    from ..bench import runner
+
+    sys.stdout.write(runner.compare(args.bench_run1, args.bench_run2))
+    return EXIT_OK
+
+
+def run(args) -> int:
+    """Run ``gridmerge bench`` with parsed ``args``; returns the exit code (0 done).
+
+    Errors raise :class:`~gridmerge.errors.GridMergeError` (one-line messages), which the
+    command line reports with exit code 2.
+    """
+    command = getattr(args, "bench_command", None) or "run"
+    if command == "compare":
+        return _cmd_compare(args)
+    return _cmd_run(args)

@@ -1,0 +1,212 @@
+"""Benchmark cases: determinism, recorded overlap, exact truth, tiers, real data."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from gridmerge import OccupancyGrid
+from gridmerge.bench import datasets
+from gridmerge.bench.metrics import halmstad_point_error, judge
+from gridmerge.errors import GridMergeError
+
+SMALL = dict(sources=("building",), building_shapes=((360, 480),))
+
+
+def _same(c1, c2) -> bool:
+    return (
+        c1.id == c2.id
+        and c1.a == c2.a
+        and c1.b == c2.b
+        and c1.positive == c2.positive
+        and (c1.truth is None and c2.truth is None or np.array_equal(c1.truth, c2.truth))
+        and c1.meta == c2.meta
+    )
+
+
+@pytest.fixture(scope="module")
+def small_set():
+    """Four small simulated cases: easy, negative, medium, negative."""
+    ds = datasets.simulated(n=4, seed=1, negatives=0.5, **SMALL)
+    return ds, list(ds)
+
+
+def test_simulated_is_deterministic_per_seed(small_set):
+    ds, cases = small_set
+    again = list(datasets.simulated(n=4, seed=1, negatives=0.5, **SMALL))
+    assert all(_same(c1, c2) for c1, c2 in zip(cases, again))
+    # A case does not depend on how many cases are asked for, nor on the order of building.
+    assert _same(datasets.simulated(n=1, seed=1, negatives=0.5, **SMALL)[0], cases[0])
+    assert _same(ds[2], cases[2])
+    other = datasets.simulated(n=1, seed=2, negatives=0.5, **SMALL)[0]
+    assert not _same(other, cases[0])
+
+
+def test_simulated_case_fields(small_set):
+    _, cases = small_set
+    assert [c.id for c in cases] == [f"simulated/{k:04d}" for k in range(4)]
+    assert [c.positive for c in cases] == [True, False, True, False]
+    assert [c.tier for c in cases] == ["easy", "negative", "medium", "negative"]
+    for c in cases:
+        assert c.dataset == "simulated"
+        m = c.meta
+        assert m["source"].startswith("building:")
+        assert -180 <= m["rotation_deg"] < 180
+        assert c.b.resolution == pytest.approx(c.a.resolution * m["scale"])
+        if c.positive:
+            tier = datasets.TIERS[m["tier"]]
+            assert tier.scale[0] <= m["scale"] <= tier.scale[1]
+            assert m["noise"] == tier.noise
+            assert 0.0 < m["overlap"] <= 1.0
+            # The truth is a similarity with the recorded rotation and scale.
+            t = c.truth
+            assert t.shape == (3, 3)
+            assert math.hypot(t[0, 0], t[1, 0]) == pytest.approx(m["scale"])
+            rot = math.degrees(math.atan2(t[1, 0], t[0, 0]))
+            assert (rot - m["rotation_deg"] + 180) % 360 - 180 == pytest.approx(0, abs=1e-9)
+        else:
+            assert c.truth is None
+            assert m["overlap"] == 0.0
+            assert m["negative_kind"] in ("distant-parts", "different-places")
+        d = c.describe()
+        assert d["a_shape"] == list(c.a.shape) and d["meta"] is m
+
+
+def test_simulated_truth_maps_b_onto_the_source(small_set):
+    """b's known cells, carried by the truth into a (and a into the source), land on
+    source cells of the same kind."""
+    _, cases = small_set
+    for c in [c for c in cases if c.positive]:
+        src = datasets.source_map(c.meta["source"])
+        ox, oy = c.meta["a_offset"]
+        a_to_src = np.array([[1.0, 0, ox], [0, 1.0, oy], [0, 0, 1.0]])
+        np.testing.assert_allclose(a_to_src @ c.truth, np.array(c.meta["b_to_source"]), atol=1e-9)
+        ys, xs = np.nonzero(c.b.known)
+        q = a_to_src @ c.truth @ np.stack([xs, ys, np.ones_like(xs)]).astype(float)
+        sx, sy = np.rint(q[:2]).astype(int)
+        H, W = src.shape
+        inside = (sx >= 0) & (sx < W) & (sy >= 0) & (sy < H)
+        assert inside.mean() > 0.99
+        b_occ = c.b.data[ys, xs][inside] > 0.5
+        near_wall = cv2.dilate(src.occupied().astype(np.uint8), np.ones((5, 5), np.uint8))[sy[inside], sx[inside]] > 0
+        src_free = src.free()[sy[inside], sx[inside]]
+        agree = np.where(b_occ, near_wall, src_free)
+        assert agree.mean() > 0.9, c.id
+        # Robot a maps in the source's frame.
+        ka = c.a.known
+        a_vals = c.a.data[ka]
+        ya, xa = np.nonzero(ka)
+        src_vals = src.data[ya + oy, xa + ox]
+        assert ((a_vals > 0.5) == (src_vals > 0.5)).mean() > 0.95
+
+
+def _lens(r: float, d: float) -> float:
+    return 2 * r * r * math.acos(d / (2 * r)) - d / 2 * math.sqrt(4 * r * r - d * d)
+
+
+def test_recorded_overlap_matches_the_geometry():
+    """Two scanners in an empty hall each see a disc; the overlap is the lens over a disc."""
+    world = np.zeros((400, 500), np.float32)
+    world[:4, :] = world[-4:, :] = 1.0
+    world[:, :4] = world[:, -4:] = 1.0
+    grid = OccupancyGrid(world)
+    r = datasets.RANGE_PX
+    for d, rot, scale in ((100.0, 37.0, 1.3), (200.0, -120.0, 0.7), (0.0, 10.0, 1.0)):
+        va = [[250 - d / 2, 200.0]]
+        vb = [[250 + d / 2, 200.0]]
+        a, b, truth, meta = datasets.robot_views_pair(grid, va, vb, rotation_deg=rot, scale=scale, rng=0)
+        expect = _lens(r, d) / (math.pi * r * r)
+        # The discs are clipped by the hall's walls only above and below (r = 150 < 200 - 4).
+        assert meta["overlap"] == pytest.approx(expect, abs=0.03), (d, meta["overlap"], expect)
+        assert b.resolution == pytest.approx(a.resolution * scale)
+        # b's scanner position, carried by the truth, is where it was in the world.
+        ox, oy = meta["a_offset"]
+        seen = np.argwhere(b.known)
+        centre_b = seen.mean(axis=0)[::-1]
+        centre_a = (truth @ np.r_[centre_b, 1.0])[:2] + [ox, oy]
+        assert np.hypot(*(centre_a - vb[0])) < 3.0
+
+
+def test_measure_overlap():
+    a = np.zeros((10, 10), bool)
+    b = np.zeros((10, 10), bool)
+    assert datasets.measure_overlap(a, b) == 0.0
+    a[:, :6] = True
+    b[:, 4:] = True
+    assert datasets.measure_overlap(a, b) == pytest.approx(20 / 60)
+    b[:] = False
+    b[0, 0] = True
+    assert datasets.measure_overlap(a, b) == 1.0
+
+
+def test_simulated_arguments_are_checked():
+    with pytest.raises(GridMergeError):
+        datasets.simulated(n=-1)
+    with pytest.raises(GridMergeError):
+        datasets.simulated(n=1, tiers=("impossible",))
+    with pytest.raises(GridMergeError):
+        datasets.simulated(n=1, sources=("moon",))
+    with pytest.raises(GridMergeError):
+        datasets.simulated(n=1, data_dir="/nonexistent/folder")
+
+
+def test_without_shared_data_only_buildings(monkeypatch, tmp_path):
+    monkeypatch.setattr(datasets, "default_data_dir", lambda: tmp_path / "absent")
+    ds = datasets.simulated(n=3, seed=0)
+    assert len(ds) == 3
+    assert any("procedural buildings only" in note for note in ds.notes)
+    with pytest.raises(GridMergeError, match="shared data"):
+        datasets.halmstad()
+
+
+def test_paper_case():
+    ds = datasets.paper()
+    assert len(ds) == 1
+    c = ds[0]
+    assert c.id == "paper/table1-seed0" and c.dataset == "paper" and c.positive
+    assert c.truth[:2, 2].tolist() == [-86.0, -36.0]
+    assert c.meta["table1"]["paper"] == {"rotation_deg": 29.91, "x": -85.79, "y": -36.11, "scale": 0.9503}
+    assert len(datasets.load("paper")) == 5 and len(datasets.load("paper", quick=True)) == 1
+    assert len(datasets.load("simulated", quick=True)) == 6
+    with pytest.raises(GridMergeError):
+        datasets.load("nope")
+
+
+def test_default_data_dir_is_next_to_the_project():
+    from pathlib import Path
+
+    root = Path(datasets.__file__).resolve().parents[3]
+    assert (root / "pyproject.toml").is_file()
+    assert datasets.default_data_dir() == root.parent / "shared" / "data"
+
+
+# ------------------------------------------------------------- shared data
+@pytest.mark.shared
+def test_halmstad_pairs(shared_data):
+    ds = datasets.halmstad(shared_data)
+    assert len(ds) == 115  # E5: 91 sensor + 14 layout; HIH: 6 + 4
+    first = ds[0]
+    assert first.dataset == "halmstad" and first.id == "halmstad/E5_01-E5_02"
+    m = first.meta
+    assert m["protocol"] == "halmstad" and m["kind"] == "sensor"
+    assert m["threshold_px"] == max(20.0, 2 * m["fit_median_residual_px"])
+    assert first.a.shape == (1585, 1585) and first.truth.shape == (3, 3)
+    # The annotation's own fit passes the protocol.
+    assert halmstad_point_error(first.truth, m["points_a"], m["points_b"]) == pytest.approx(m["fit_median_residual_px"], abs=0.05)
+    assert judge(first.truth, first.truth, first.b.shape, positive=True, protocol=m)["success"]
+    last = ds[len(ds) - 1]
+    assert last.dataset == "halmstad-layout" and last.meta["kind"] == "layout"
+    quick = datasets.load("halmstad", quick=True, data_dir=shared_data)
+    assert [c.dataset for c in quick] == ["halmstad"] * 4 + ["halmstad-layout"] * 2
+
+
+@pytest.mark.shared
+def test_simulated_from_real_maps(shared_data):
+    names = datasets.source_names(shared_data)
+    assert "willow" in names and "halmstad:E5_01" in names and "halmstad:HIH_04" in names
+    ds = datasets.simulated(n=1, seed=0, data_dir=shared_data, sources=("willow",))
+    c = ds[0]
+    assert c.meta["source"] == "willow" and c.positive and not ds.notes

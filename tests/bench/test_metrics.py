@@ -1,0 +1,136 @@
+"""Scoring hand-made results."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gridmerge import OccupancyGrid
+from gridmerge.align import AlignResult
+from gridmerge.bench.datasets import Case
+from gridmerge.bench.metrics import PRECISE_PX, SUCCESS_PX, Record, evaluate, judge, summarize
+from gridmerge.transforms import SimilarityTransform
+
+SHAPE = (200, 300)
+TRUTH = np.array(
+    [[0.9 * math.cos(0.5), -0.9 * math.sin(0.5), 40.0], [0.9 * math.sin(0.5), 0.9 * math.cos(0.5), -12.0], [0, 0, 1.0]]
+)
+
+
+def _shifted(dx: float) -> np.ndarray:
+    return np.array([[1.0, 0, dx], [0, 1.0, 0], [0, 0, 1.0]]) @ TRUTH
+
+
+def test_perfect_transform_is_a_precise_success():
+    s = judge(TRUTH, TRUTH, SHAPE, positive=True)
+    assert s["aligned"] and s["success"] and s["precise"]
+    assert not s["declined"] and not s["wrong"] and not s["false_merge"]
+    assert s["corner_error_px"] == pytest.approx(0.0, abs=1e-9)
+    assert s["rotation_error_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert s["scale_error"] == pytest.approx(0.0, abs=1e-12)
+    assert s["estimate"]["scale"] == pytest.approx(0.9)
+    assert s["estimate"]["rotation_deg"] == pytest.approx(math.degrees(0.5))
+
+
+def test_five_pixels_off_is_a_success_but_not_precise():
+    s = judge(_shifted(5.0), TRUTH, SHAPE, positive=True)
+    assert s["corner_error_px"] == pytest.approx(5.0)
+    assert s["translation_error_px"] == pytest.approx(5.0)
+    assert s["success"] and not s["precise"] and not s["wrong"]
+    assert PRECISE_PX < 5.0 <= SUCCESS_PX
+
+
+def test_fifty_pixels_off_is_wrong():
+    s = judge(_shifted(50.0), TRUTH, SHAPE, positive=True)
+    assert s["aligned"] and not s["success"] and not s["precise"] and s["wrong"] and not s["declined"]
+    assert s["corner_error_px"] == pytest.approx(50.0)
+
+
+def test_rotation_error_counts_at_the_corners():
+    rot = np.array([[math.cos(0.01), -math.sin(0.01), 0], [math.sin(0.01), math.cos(0.01), 0], [0, 0, 1.0]])
+    s = judge(TRUTH @ rot, TRUTH, SHAPE, positive=True)
+    assert s["rotation_error_deg"] == pytest.approx(math.degrees(0.01))
+    # The corner farthest from b's origin moves by 0.9 * 0.01 * |(299, 199)|.
+    assert s["corner_error_px"] == pytest.approx(0.9 * 2 * math.sin(0.005) * math.hypot(299, 199), rel=1e-6)
+
+
+def test_declined():
+    s = judge(None, TRUTH, SHAPE, positive=True, candidate=_shifted(3.0))
+    assert s["declined"] and not s["aligned"] and not s["success"] and not s["wrong"]
+    assert s["corner_error_px"] is None
+    assert s["candidate_corner_error_px"] == pytest.approx(3.0)
+    assert s["candidate_success"] is True
+    assert judge(None, TRUTH, SHAPE, positive=True, candidate=_shifted(30.0))["candidate_success"] is False
+    assert judge(None, TRUTH, SHAPE, positive=True)["candidate_success"] is None
+
+
+def test_negative_pairs():
+    merged = judge(TRUTH, None, SHAPE, positive=False)
+    assert merged["false_merge"] and merged["wrong"] and not merged["success"]
+    declined = judge(None, None, SHAPE, positive=False)
+    assert declined["declined"] and not declined["false_merge"] and not declined["wrong"]
+
+
+def test_halmstad_protocol():
+    pts_b = np.array([[10.0, 10.0], [100.0, 40.0], [50.0, 150.0], [200.0, 20.0]])
+    pts_a = pts_b @ TRUTH[:2, :2].T + TRUTH[:2, 2]
+    proto = {"points_a": pts_a.tolist(), "points_b": pts_b.tolist(), "threshold_px": 20.0}
+    ok = judge(_shifted(15.0), TRUTH, SHAPE, positive=True, protocol=proto)
+    assert ok["success"] and ok["point_error_px"] == pytest.approx(15.0) and ok["precise"] is None
+    bad = judge(_shifted(25.0), TRUTH, SHAPE, positive=True, protocol=proto)
+    assert not bad["success"] and bad["wrong"]
+
+
+def _case(positive=True):
+    a = OccupancyGrid(np.zeros((50, 60)))
+    b = OccupancyGrid(np.zeros(SHAPE))
+    meta = {"tier": "easy", "overlap": 0.6, "rotation_deg": 28.6, "scale": 0.9, "noise": 0.0, "source": "test"}
+    return Case("t/0", "simulated", a, b, TRUTH if positive else None, positive, meta)
+
+
+def _result(matrix, success=True):
+    t = None if matrix is None else SimilarityTransform(matrix)
+    return AlignResult(
+        success=success, transform=t if success else None, candidate=t, metric_transform=None, confidence=0.9,
+        acceptance_index=0.95, inliers=30, matches=100, keypoints=(10, 10), method="sift", message="ok", elapsed_s=0.5,
+    )
+
+
+def test_evaluate_builds_a_record():
+    rec = evaluate(_case(), _result(_shifted(5.0)), wall_s=0.6, peak_mb=12.0, max_rss_mb=300.0)
+    assert isinstance(rec, Record)
+    assert rec.success and not rec.precise and rec.method == "sift" and rec.tier == "easy"
+    assert rec.cells == 50 * 60 + SHAPE[0] * SHAPE[1] and rec.b_shape == list(SHAPE)
+    assert rec.overlap == 0.6 and rec.wall_s == 0.6 and rec.align_s == 0.5 and rec.peak_mb == 12.0
+    assert Record.from_dict(rec.to_dict()) == rec
+    declined = evaluate(_case(), _result(_shifted(1.0), success=False))
+    assert declined.declined and declined.candidate_corner_error_px == pytest.approx(1.0)
+    crashed = evaluate(_case(), None, error="ValueError: boom")
+    assert crashed.declined and crashed.error == "ValueError: boom"
+    false_merge = evaluate(_case(positive=False), _result(TRUTH))
+    assert false_merge.false_merge
+
+
+def test_summaries():
+    recs = [
+        evaluate(_case(), _result(TRUTH), wall_s=1.0),
+        evaluate(_case(), _result(_shifted(5.0)), wall_s=2.0),
+        evaluate(_case(), _result(_shifted(50.0)), wall_s=3.0),
+        evaluate(_case(), _result(None, success=False), wall_s=4.0),
+        evaluate(_case(positive=False), _result(TRUTH), wall_s=5.0),
+        evaluate(_case(positive=False), _result(None, success=False), wall_s=6.0),
+    ]
+    for r in recs:
+        r.method = "m"
+    rows = summarize(recs)
+    assert len(rows) == 1  # one tier and negatives share the tier "easy" here
+    r = rows[0]
+    assert (r["positives"], r["negatives"]) == (4, 2)
+    assert r["success_rate"] == 0.5 and r["precise_rate"] == 0.25
+    assert r["declined_rate"] == 0.25 and r["wrong_rate"] == 0.25
+    assert r["declined_right_candidate"] == 0  # the declined one had no candidate
+    assert r["false_merge_rate"] == 0.5 and r["false_merges"] == 1
+    assert r["median_error_px"] == pytest.approx(2.5)
+    assert r["median_time_s"] == pytest.approx(3.5)

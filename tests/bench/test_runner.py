@@ -1,0 +1,153 @@
+"""A tiny end-to-end benchmark run, its files, reproducibility, compare, and the CLI."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+
+from gridmerge.bench import datasets, runner
+from gridmerge.bench.plots import PLOTS
+from gridmerge.cli import bench as cli_bench
+from gridmerge.errors import GridMergeError, OutputError
+
+
+def _tiny():
+    """One easy positive and one negative small simulated pair, and the Table I case."""
+    sim = datasets.simulated(n=2, seed=1, negatives=0.5, sources=("building",), building_shapes=((360, 480),))
+    return [sim, datasets.paper()]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    base = tmp_path_factory.mktemp("bench")
+    calls = []
+    r1 = runner.run(
+        ["sift", "no-such-method"], _tiny(), seed=3, out_dir=base / "run1",
+        progress=lambda done, total, label: calls.append((done, total, label)),
+    )
+    r2 = runner.run("sift", _tiny(), seed=3, out_dir=base / "run2", plots=False)
+    return r1, r2, calls
+
+
+def test_run_writes_every_file(runs):
+    r1, _, calls = runs
+    out = r1.out_dir
+    for name in runner.FILES:
+        assert (out / name).is_file(), name
+    for name in PLOTS:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    assert not (out / "cases.jsonl.partial").exists()
+    lines = (out / "cases.jsonl").read_text().splitlines()
+    assert len(lines) == 3  # 3 cases x 1 registered method
+    recs = [json.loads(line) for line in lines]
+    assert [r["case_id"] for r in recs] == ["simulated/0000", "simulated/0001", "paper/table1-seed0"]
+    assert all(r["method"] == "sift" for r in recs)
+    assert recs[2]["success"] and recs[2]["precise"]  # the paper's experiment
+    assert not recs[1]["positive"]
+    assert all(r["wall_s"] > 0 and r["peak_mb"] > 0 for r in recs)
+    assert calls[0] == (0, 3, "simulated/0000 sift") and calls[-1] == (3, 3, "")
+
+    summary = json.loads((out / "summary.json").read_text())
+    assert any("no-such-method" in w for w in summary["warnings"])
+    assert {(r["dataset"], r["tier"]) for r in summary["rows"]} >= {("simulated", "all"), ("simulated", "easy"), ("simulated", "negative"), ("paper", "all")}
+    assert summary["table1"]["paper"]["rotation_deg"] == 29.91
+    config = json.loads((out / "config.json").read_text())
+    assert config["seed"] == 3 and config["methods"] == ["sift"] and config["skipped_methods"] == ["no-such-method"]
+    for key in ("platform", "cpu_count", "python", "numpy", "opencv"):
+        assert config["machine"][key]
+    md = (out / "results.md").read_text()
+    assert "| simulated | `sift` |" in md and "Table I" in md and "no-such-method" in md and "29.91" in md
+
+
+def test_run_is_reproducible_and_loads_back(runs):
+    r1, r2, _ = runs
+    assert r1.reproducible_records() == r2.reproducible_records()
+    loaded = runner.BenchRun.load(r1.out_dir)
+    assert loaded.records == r1.records
+    assert loaded.summary == r1.summary
+    assert loaded.row("sift", "paper")["success_rate"] == 1.0
+
+
+def test_compare(runs):
+    r1, r2, _ = runs
+    text = runner.compare(r1.out_dir, r2.out_dir)
+    assert text.startswith("# Benchmark comparison")
+    assert "| paper | all | `sift` |" in text
+    assert "100.0 % → 100.0 % (=)" in text
+    # A changed summary shows up as a difference.
+    row = next(r for r in r2.summary["rows"] if r["dataset"] == "paper")
+    changed = runner.BenchRun(r2.out_dir, r2.config, r2.records, {**r2.summary, "rows": [{**row, "success_rate": 0.0}]})
+    text = runner.compare(r1, changed)
+    assert "100.0 % → 0.0 % (-100.0 pt)" in text
+    assert "Only in one run" in text
+
+
+def test_run_refuses_to_overwrite_results(runs, tmp_path):
+    r1, _, _ = runs
+    with pytest.raises(OutputError):
+        runner.run("paper", [datasets.paper()], out_dir=r1.out_dir)
+    with pytest.raises(GridMergeError, match="no registered method"):
+        runner.run(["nope"], [datasets.paper()], out_dir=tmp_path / "x")
+    with pytest.raises(GridMergeError):
+        runner.BenchRun.load(tmp_path)
+
+
+def test_a_failing_method_is_recorded_not_fatal(tmp_path, monkeypatch):
+    from gridmerge.align import METHODS, Method
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("kaput")
+
+    monkeypatch.setitem(METHODS, "boom", Method("boom", boom, None))
+    r = runner.run(["boom"], [datasets.paper()], out_dir=tmp_path / "r", plots=False, memory=False)
+    rec = r.records[0]
+    assert rec["declined"] and not rec["success"] and rec["error"] == "RuntimeError: kaput"
+    assert r.row("boom", "paper")["errors"] == 1
+
+
+# ------------------------------------------------------------------------ CLI
+def _parser():
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true")
+    common.add_argument("--seed", type=int, default=0)  # as the main parser's common options
+    p = argparse.ArgumentParser(prog="gridmerge")
+    sub = p.add_subparsers(dest="command")
+    cli_bench.add_parser(sub, [common])
+    return p
+
+
+def test_cli_run_and_compare(tmp_path, capsys):
+    p = _parser()
+    out1, out2 = tmp_path / "r1", tmp_path / "r2"
+    args = p.parse_args(["bench", "--dataset", "paper", "--quick", "--methods", "paper,nope", "--out", str(out1), "--no-plots"])
+    assert cli_bench.run(args) == 0
+    captured = capsys.readouterr()
+    assert "paper" in captured.out and f"results: {out1}" in captured.out
+    assert "'nope' is not registered" in captured.err
+    assert "[" not in captured.err  # no progress bar: stderr is not a terminal
+    args = p.parse_args(["bench", "run", "--dataset", "paper", "--quick", "--methods", "paper", "--out", str(out2), "--no-plots", "--progress", "--seed", "1"])
+    assert cli_bench.run(args) == 0
+    captured = capsys.readouterr()
+    assert "1/1" in captured.err
+    assert json.loads((out2 / "config.json").read_text())["seed"] == 1
+    # An existing results folder needs --force.
+    with pytest.raises(OutputError):
+        cli_bench.run(p.parse_args(["bench", "--dataset", "paper", "--quick", "--methods", "paper", "--out", str(out2), "--no-plots"]))
+    assert cli_bench.run(p.parse_args(["bench", "--dataset", "paper", "--quick", "--methods", "paper", "--out", str(out2), "--no-plots", "--force"])) == 0
+    capsys.readouterr()
+    assert cli_bench.run(p.parse_args(["bench", "compare", str(out1), str(out2)])) == 0
+    assert "| paper | all | `paper` |" in capsys.readouterr().out
+    with pytest.raises(GridMergeError):
+        cli_bench.run(p.parse_args(["bench", "compare", str(out1), str(tmp_path / "absent")]))
+
+
+def test_cli_options_without_parents():
+    p = argparse.ArgumentParser(prog="gridmerge")
+    sub = p.add_subparsers(dest="command")
+    cli_bench.add_parser(sub)
+    args = p.parse_args(["bench", "--quick", "--seed", "4", "run", "--n", "3", "--dataset", "simulated", "--dataset", "halmstad"])
+    assert (args.bench_quick, args.bench_seed, args.bench_n, args.bench_datasets) == (True, 4, 3, ["simulated", "halmstad"])
+    args = p.parse_args(["bench"])
+    assert args.bench_datasets is None and args.bench_seed == 0 and args.bench_plots
