@@ -74,3 +74,17 @@ def test_render_levels():
     assert g.known.tolist() == [[True, True, False]]
     assert g.occupied().tolist() == [[False, True, False]]
     assert g.free().tolist() == [[True, False, False]]
+
+
+def test_crop_known_keeps_metric_coordinates():
+    d = np.full((10, 12), np.nan)
+    d[3:6, 4:9] = 0.0
+    g = OccupancyGrid(d, resolution=0.5, origin=(1.0, -2.0, 0.4))
+    assert g.known_bounds() == (4, 3, 9, 6)
+    assert g.known_bounds(2) == (2, 1, 11, 8)
+    cut, off = g.crop_known(1)
+    assert cut.shape == (5, 7) and off.tolist() == [3, 2]
+    p = np.array([[0.0, 0.0], [6.0, 4.0]])
+    np.testing.assert_allclose(cut.pixel_to_metric(p), g.pixel_to_metric(p + off))
+    empty = OccupancyGrid(np.full((3, 3), np.nan))
+    assert empty.known_bounds() is None and empty.crop_known()[0] is empty

@@ -628,8 +628,8 @@ def align(
     fa = fa if fa is not None else (ext(a) if ext is not None else Features.empty())
     fb = fb if fb is not None else (ext(b) if ext is not None else Features.empty())
     # Work on the known part of each map only: real maps are often mostly unknown.
-    ca, oa = _crop_known(a, _CROP_MARGIN)
-    cb, ob = _crop_known(b, _CROP_MARGIN)
+    ca, oa = a.crop_known(_CROP_MARGIN)
+    cb, ob = b.crop_known(_CROP_MARGIN)
     est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen)
     if est.transform is not None:
         # Back from the crops' pixels to the whole maps' pixels.
@@ -681,19 +681,6 @@ _REFINE_TOP = 3
 _SAME_POSE_PX = 10.0
 #: ... and farther than this, two clearly different poses (for the ambiguity check).
 _OTHER_POSE_PX = 40.0
-
-
-def _crop_known(grid: OccupancyGrid, margin: int) -> tuple[OccupancyGrid, np.ndarray]:
-    """The bounding box of ``grid``'s known cells grown by ``margin``, and its offset (x, y)."""
-    rows = np.flatnonzero(grid.known.any(1))
-    cols = np.flatnonzero(grid.known.any(0))
-    if len(rows) == 0:
-        return grid, np.zeros(2)
-    y0, y1 = max(0, rows[0] - margin), min(grid.height, rows[-1] + 1 + margin)
-    x0, x1 = max(0, cols[0] - margin), min(grid.width, cols[-1] + 1 + margin)
-    if (y0, x0, y1, x1) == (0, 0, grid.height, grid.width):
-        return grid, np.zeros(2)
-    return grid.replace(data=grid.data[y0:y1, x0:x1]), np.array([x0, y0], dtype=float)
 
 
 def _shifted(f: Features, offset: np.ndarray) -> Features:

@@ -296,11 +296,9 @@ class FeatureExtractor:
         binary = bool(getattr(self.descriptor, "binary", False))
         image, mask = self.renderer(grid)
         x0 = y0 = 0
-        rows = np.flatnonzero(grid.known.any(1))
-        cols = np.flatnonzero(grid.known.any(0))
-        if len(rows):
-            y0, y1 = max(0, rows[0] - self.margin), min(grid.height, rows[-1] + 1 + self.margin)
-            x0, x1 = max(0, cols[0] - self.margin), min(grid.width, cols[-1] + 1 + self.margin)
+        box = grid.known_bounds(self.margin)
+        if box is not None:
+            x0, y0, x1, y1 = box
             image = np.ascontiguousarray(image[y0:y1, x0:x1])
             mask = None if mask is None else np.ascontiguousarray(mask[y0:y1, x0:x1])
         if min(image.shape[:2]) < MIN_IMAGE_SIDE:

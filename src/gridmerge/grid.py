@@ -253,6 +253,37 @@ class OccupancyGrid:
         """Map ``(N, 2)`` metres in the map frame to ``(N, 2)`` image pixels."""
         return _apply(self.metric_to_pixel_matrix(), xy)
 
+    def known_bounds(self, margin: int = 0) -> tuple[int, int, int, int] | None:
+        """``(x0, y0, x1, y1)``: the known cells' bounding box (end exclusive) grown by
+        ``margin`` cells and clipped to the map; ``None`` when no cell is known."""
+        known = self.known
+        rows = np.flatnonzero(known.any(1))
+        if len(rows) == 0:
+            return None
+        cols = np.flatnonzero(known.any(0))
+        m = int(margin)
+        return (
+            max(0, int(cols[0]) - m),
+            max(0, int(rows[0]) - m),
+            min(self.width, int(cols[-1]) + 1 + m),
+            min(self.height, int(rows[-1]) + 1 + m),
+        )
+
+    def crop_known(self, margin: int = 0) -> tuple["OccupancyGrid", np.ndarray]:
+        """The map cut to :meth:`known_bounds`, and the cut's pixel offset ``(x, y)``.
+
+        Pixel ``p`` of the cut is pixel ``p + offset`` of this map, and the cut's origin
+        is set so that every cell keeps its metric coordinates. A map with nothing known,
+        or nothing to cut, is returned as it is (offset 0).
+        """
+        box = self.known_bounds(margin)
+        if box is None or box == (0, 0, self.width, self.height):
+            return self, np.zeros(2)
+        x0, y0, x1, y1 = box
+        corner = self.pixel_to_metric([[x0 - 0.5, y1 - 0.5]])[0]  # new lower-left corner
+        cut = self.replace(data=self.data[y0:y1, x0:x1], origin=(float(corner[0]), float(corner[1]), self.origin[2]))
+        return cut, np.array([x0, y0], dtype=float)
+
     def corners(self) -> np.ndarray:
         """(4, 2) float array: pixel coordinates of the image's outer corners (cell edges)."""
         h, w = self.shape

@@ -33,14 +33,8 @@ def require_matplotlib():
 
 def _crop(grid: OccupancyGrid, margin: int = 20):
     """The rendered grid cut to its known cells (plus a margin), and the cut's (x, y) offset."""
-    img = grid.render()
-    rows = np.flatnonzero(grid.known.any(1))
-    cols = np.flatnonzero(grid.known.any(0))
-    if len(rows) == 0:
-        return img, np.zeros(2)
-    y0, x0 = max(0, rows[0] - margin), max(0, cols[0] - margin)
-    y1, x1 = min(grid.height, rows[-1] + 1 + margin), min(grid.width, cols[-1] + 1 + margin)
-    return img[y0:y1, x0:x1], np.array([x0, y0], dtype=float)
+    cut, offset = grid.crop_known(margin)
+    return cut.render(), offset
 
 
 def _side_by_side(a: np.ndarray, b: np.ndarray, gap: int = 10):

@@ -260,16 +260,8 @@ def _source_map(name: str, data_dir: Optional[str]) -> OccupancyGrid:
         stem = name.split(":", 1)[1]
         env = stem.split("_")[0]
         g = load_map(d / "halmstad" / env / f"{stem}.png")
-        return _crop_to_known(g, 8)[0]
+        return g.crop_known(8)[0]
     raise GridMergeError(f"unknown source map {name!r}")
-
-
-def _crop_to_known(g: OccupancyGrid, margin: int):
-    rows = np.flatnonzero(g.known.any(1))
-    cols = np.flatnonzero(g.known.any(0))
-    y0, y1 = max(0, rows[0] - margin), min(g.height, rows[-1] + 1 + margin)
-    x0, x1 = max(0, cols[0] - margin), min(g.width, cols[-1] + 1 + margin)
-    return g.replace(data=g.data[y0:y1, x0:x1]), int(x0), int(y0)
 
 
 # ------------------------------------------------------------ geometry helpers
