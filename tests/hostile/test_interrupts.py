@@ -92,6 +92,13 @@ else:
 LEFTOVER = re.compile(r"^\.(?P<target>.+)\.(tmp|bak)-\d+-\d+$")
 
 
+def _default_sigint() -> None:
+    """In the child: SIGINT as a user's Ctrl-C finds it. A test run started as a background
+    job (CI) hands its children SIGINT ignored, and Python then never raises
+    KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_helper(folder: Path, hook: str, mode: str, *args, h) -> tuple[subprocess.Popen, Path]:
     script = folder.parent / f"helper-{folder.name}.py"
     script.write_text(HELPER)
@@ -104,6 +111,7 @@ def _start_helper(folder: Path, hook: str, mode: str, *args, h) -> tuple[subproc
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_default_sigint,
     )
     return proc, ready
 
@@ -270,6 +278,7 @@ def test_ctrl_c_of_the_real_command(tmp_path, pair_folder, h):
     proc = subprocess.Popen(
         h.command("merge", "a.yaml", "b.yaml", "-o", "out.yaml"), cwd=tmp_path, env=h.env(),
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=_default_sigint,
     )
     deadline = time.monotonic() + 30
     while not _catches_sigterm(proc.pid):
