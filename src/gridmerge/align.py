@@ -58,7 +58,7 @@ from .matching import knn, match_nn, match_smnn, match_snn
 from .refine import refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 from .correlate import correlation_hypotheses
-from .verify import Verification, WallScorer, verify
+from .verify import Verification, WallScorer, despeckle, verify
 
 __all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor"]
 
@@ -630,6 +630,9 @@ def align(
     # Work on the known part of each map only: real maps are often mostly unknown.
     ca, oa = a.crop_known(_CROP_MARGIN)
     cb, ob = b.crop_known(_CROP_MARGIN)
+    if spec.verified:
+        # Our methods judge alignments by walls: isolated hits are not walls.
+        ca, cb = despeckle(ca), despeckle(cb)
     est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen)
     if est.transform is not None:
         # Back from the crops' pixels to the whole maps' pixels.
@@ -643,7 +646,11 @@ def align(
     message = est.message
     conf = 0.0
     if est.transform is not None:
-        v = est.verification or verify(a, b, est.transform, tolerance=opts.wall_tolerance)
+        v = est.verification or (
+            verify(despeckle(a), despeckle(b), est.transform, tolerance=opts.wall_tolerance)
+            if spec.verified
+            else verify(a, b, est.transform, tolerance=opts.wall_tolerance)
+        )
         if spec.verified:
             by_structure = est.confidence is not None
             conf = float(est.confidence) if by_structure else _confidence(n_inl, v, est.transform.min_samples)

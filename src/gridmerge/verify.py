@@ -36,7 +36,7 @@ from .fuse import warp_values
 from .grid import FREE_THRESHOLD, OCCUPIED_THRESHOLD, OccupancyGrid
 from .transforms import AffineTransform
 
-__all__ = ["Verification", "verify", "acceptance_index", "WallScorer", "QuickScore"]
+__all__ = ["Verification", "verify", "acceptance_index", "WallScorer", "QuickScore", "despeckle"]
 
 
 @dataclass(frozen=True)
@@ -82,6 +82,25 @@ def acceptance_index(p: np.ndarray, q: np.ndarray, *, occupied: float = OCCUPIED
     dis = int(np.count_nonzero(po & qf) + np.count_nonzero(pf & qo))
     index = agr / (agr + dis) if agr + dis else math.nan
     return index, agr, dis
+
+
+def despeckle(grid: OccupancyGrid) -> OccupancyGrid:
+    """``grid`` with isolated occupied cells (no occupied 8-neighbour) made free.
+
+    Single spurious hits are scattered over the free space of real and simulated maps;
+    they are not walls, and judging an alignment by them only adds noise. Returns ``grid``
+    itself when there is none.
+    """
+    occ = grid.occupied().astype(np.uint8)
+    if not occ.any():
+        return grid
+    neighbours = cv2.filter2D(occ, cv2.CV_16S, np.ones((3, 3), np.float32), borderType=cv2.BORDER_CONSTANT) - occ
+    isolated = (occ == 1) & (neighbours == 0)
+    if not isolated.any():
+        return grid
+    data = grid.data.copy()
+    data[isolated] = 0.0
+    return grid.replace(data=data)
 
 
 def _near(mask: np.ndarray, tolerance: float) -> np.ndarray:
