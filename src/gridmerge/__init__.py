@@ -16,7 +16,7 @@ from .align import AlignOptions, AlignResult, align
 from .errors import GridMergeError, LimitExceededError, MapFormatError, OutputError
 from .grid import OccupancyGrid
 from .io import load_map, save_map
-from .merge import MergeResult, merge
+from .merge import MergeResult, Merger, merge
 from .transforms import AffineTransform, FailedEstimation, ScaledRotationTransform, SimilarityTransform
 
 __version__ = "0.1.0"
@@ -30,6 +30,7 @@ __all__ = [
     "AlignResult",
     "merge",
     "MergeResult",
+    "Merger",
     "AffineTransform",
     "SimilarityTransform",
     "ScaledRotationTransform",

@@ -16,7 +16,7 @@ from .align import AlignResult
 from .errors import GridMergeError
 from .grid import OccupancyGrid
 
-__all__ = ["require_matplotlib", "plot_merge", "save_plot"]
+__all__ = ["require_matplotlib", "plot_merge", "plot_fleet", "save_plot"]
 
 
 def require_matplotlib():
@@ -97,6 +97,61 @@ def plot_merge(
             sub = f": rotation {np.degrees(t.rotation):.2f} deg, scale {t.scale:.4f}, translation ({t.translation[0]:.1f}, {t.translation[1]:.1f}) px"
         ax.set_title("merged map" + sub, fontsize=9)
         ax.set_axis_off()
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def plot_fleet(result, *, dpi: int = 110, max_thumbnails: int = 16) -> bytes:
+    """PNG bytes: every input map in its own frame (left) and the merged map (right) with
+    the outline of each placed map's known area in its colour.
+
+    Parameters
+    ----------
+    result : gridmerge.MergeResult
+        A merge of any number of maps (its ``inputs`` and ``transforms`` are drawn).
+    """
+    import cv2
+
+    plt = require_matplotlib()
+    maps = list(result.inputs)
+    n = min(len(maps), max_thumbnails)
+    cols = 2 if n > 1 else 1
+    rows = int(np.ceil(n / cols))
+    fig = plt.figure(figsize=(15, max(5.0, 2.4 * rows)))
+    grid_spec = fig.add_gridspec(rows, cols + 3)
+    colours = plt.get_cmap("tab10" if n <= 10 else "tab20")
+    for k in range(n):
+        ax = fig.add_subplot(grid_spec[k // cols, k % cols])
+        ax.imshow(_crop(maps[k], 5)[0], cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        placed = result.transforms[k] is not None
+        ax.set_title(f"{Path(result.names[k]).name}" + ("" if placed else " (unplaced)"), fontsize=8,
+                     color=colours(k % colours.N) if placed else "black")
+        ax.set_axis_off()
+    ax = fig.add_subplot(grid_spec[:, cols:])
+    if result.grid is not None:
+        merged = result.grid
+        cut, (ox, oy) = _crop(merged, 10)
+        ax.imshow(cut, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+        for k, t in enumerate(result.transforms):
+            if t is None or k >= len(maps):
+                continue
+            known = maps[k].known.astype(np.uint8)
+            warped = cv2.warpAffine(known, np.ascontiguousarray(t.matrix), (merged.width, merged.height), flags=cv2.INTER_NEAREST)
+            warped = cv2.morphologyEx(warped, cv2.MORPH_CLOSE, np.ones((9, 9), np.uint8))
+            contours, _ = cv2.findContours(warped, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+            for c in contours:
+                if len(c) < 3:
+                    continue
+                c = c[:, 0, :].astype(float)
+                c = np.vstack([c, c[:1]])
+                ax.plot(c[:, 0] - ox, c[:, 1] - oy, "-", color=colours(k % colours.N), lw=1.2)
+        ax.set_title(f"merged map: {result.message}", fontsize=9)
+    else:
+        ax.text(0.5, 0.5, f"not merged: {result.message}", ha="center", va="center", wrap=True)
+    ax.set_axis_off()
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)

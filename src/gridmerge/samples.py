@@ -1077,7 +1077,10 @@ def negative_pair(seed: int = 0, *, shape: Sequence[int] = (480, 640)) -> tuple[
 
 
 #: The sample pairs :func:`write_sample` can write.
-SAMPLE_KINDS = ("robots", "table1", "different")
+SAMPLE_KINDS = ("robots", "table1", "different", "fleet")
+
+#: Robots of the ``"fleet"`` sample.
+FLEET_ROBOTS = 8
 
 
 def write_sample(folder, kind: str = "robots", seed: int = 0) -> dict:
@@ -1085,21 +1088,26 @@ def write_sample(folder, kind: str = "robots", seed: int = 0) -> dict:
 
     Writes ``a.yaml``/``a.pgm`` and ``b.yaml``/``b.pgm`` (and ``truth.json`` with the 3x3
     matrix mapping b's pixels to a's, except for ``"different"``) into ``folder``, which
-    must exist.
+    must exist. The ``"fleet"`` sample is eight robots' maps of one building
+    (``robot1.yaml`` ... ``robot8.yaml``), a robot's map of another building
+    (``stranger.yaml``), the same nine maps as ``nav_msgs/OccupancyGrid`` messages on
+    topics ``/robot1/map`` ... ``/stranger/map`` of a ROS 1 bag (``fleet.bag``), and
+    ``truth.json`` (each robot's pixels -> the building's pixels).
 
     Parameters
     ----------
     folder : str or path-like
-    kind : {"robots", "table1", "different"}
+    kind : {"robots", "table1", "different", "fleet"}
         Two robots exploring one building (:func:`robot_pair`), the paper's Table I
-        experiment (:func:`table1_pair`), or maps of two different buildings
-        (:func:`negative_pair`).
+        experiment (:func:`table1_pair`), maps of two different buildings
+        (:func:`negative_pair`), or a fleet (:func:`gridmerge.bench.fleet.simulate_fleet`).
     seed : int
 
     Returns
     -------
     dict
-        The paths written, by role (``"a"``, ``"b"``, ``"truth"``).
+        The paths written, by role (``"a"``, ``"b"``, ``"truth"``; for a fleet the robots'
+        names, ``"stranger"``, ``"bag"``, ``"truth"``).
     """
     import json
     from pathlib import Path
@@ -1107,6 +1115,8 @@ def write_sample(folder, kind: str = "robots", seed: int = 0) -> dict:
     from .io import atomic_write, save_map
 
     folder = Path(folder)
+    if kind == "fleet":
+        return _write_fleet(folder, seed)
     if kind == "robots":
         a, b, truth = robot_pair(seed)
     elif kind == "table1":
@@ -1119,4 +1129,35 @@ def write_sample(folder, kind: str = "robots", seed: int = 0) -> dict:
     if truth is not None:
         out["truth"] = folder / "truth.json"
         atomic_write(out["truth"], (json.dumps({"b_to_a": np.asarray(truth).tolist()}) + "\n").encode())
+    return out
+
+
+def sample_outputs(kind: str) -> list:
+    """File names :func:`write_sample` writes for ``kind`` (so callers can check them first)."""
+    if kind == "fleet":
+        names = [f"robot{k}" for k in range(1, FLEET_ROBOTS + 1)] + ["stranger"]
+        return [f"{n}.{ext}" for n in names for ext in ("yaml", "pgm")] + ["fleet.bag", "truth.json"]
+    return ["a.yaml", "a.pgm", "b.yaml", "b.pgm"] + ([] if kind == "different" else ["truth.json"])
+
+
+def _write_fleet(folder, seed: int) -> dict:
+    import json
+
+    from .bench.fleet import simulate_fleet
+    from .io import atomic_write, save_map
+    from .io.bags import write_map_messages
+
+    fleet = simulate_fleet(FLEET_ROBOTS, seed=seed)
+    stranger = simulate_fleet(1, seed=seed + 5, shape=(500, 700)).maps[0].replace(name="stranger")
+    out: dict = {}
+    maps = list(fleet.maps) + [stranger]
+    for m in maps:
+        out[m.name] = save_map(m, folder / f"{m.name}.yaml")
+    stamp = 1_700_000_000 * 10**9
+    out["bag"] = write_map_messages(
+        folder / "fleet.bag", [(f"/{m.name}/map", m, stamp + k) for k, m in enumerate(maps)], format="ros1", overwrite=True
+    )
+    out["truth"] = folder / "truth.json"
+    truth = {m.name: np.asarray(t).tolist() for m, t in zip(fleet.maps, fleet.to_source)}
+    atomic_write(out["truth"], (json.dumps({"to_building": truth}) + "\n").encode())
     return out

@@ -333,11 +333,12 @@ def runs(sample_maps, tmp_path_factory):
         return sample_maps.copy_to(base / key, *(maps or ("a", "b")))
 
     # The slow runs first, so that they start at once.
-    runner.add("merge", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png", "--json", "--fusion", "average"], folder("merge"))
+    # --resolution 0.1: a's own (the default would be b's finer 0.095 m/cell).
+    runner.add("merge", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png", "--json", "--fusion", "average", "--resolution", "0.1"], folder("merge"))
     runner.add("align-json", ["align", "a.yaml", "b.yaml", "--json"], sample_maps.folder)
     for fusion in OTHER_FUSIONS:
-        runner.add(f"fusion-{fusion}", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--fusion", fusion, "--json"], folder(f"fusion-{fusion}"))
-    runner.add("merge-raw", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--save-mode", "raw"], folder("merge-raw"))
+        runner.add(f"fusion-{fusion}", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--fusion", fusion, "--json", "--resolution", "0.1"], folder(f"fusion-{fusion}"))
+    runner.add("merge-raw", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--save-mode", "raw", "--resolution", "0.1"], folder("merge-raw"))
     f = folder("merge-force")
     _old_output(f)
     runner.add("merge-force", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--force"], f)
@@ -519,7 +520,7 @@ def test_merge_files(runs, sample_maps):
     assert (job.cwd / "out.pgm").read_bytes().startswith(b"P5")
     merged = load_map(job.cwd / "out.yaml")
     a = sample_maps.a
-    assert merged.resolution == a.resolution  # the reference's, from its YAML
+    assert merged.resolution == a.resolution  # asked for with --resolution
     assert merged.origin[2] == pytest.approx(a.origin[2])
     # b reaches beyond a's image (its top-left corner lands at (-86, -36) in a).
     assert merged.height > a.height and merged.width > a.width
@@ -576,7 +577,8 @@ def test_merge_force_overwrites(runs, sample_maps):
     assert {k: after[k] for k in ("a.yaml", "a.pgm", "b.yaml", "b.pgm")} == {
         k: job.before[k] for k in ("a.yaml", "a.pgm", "b.yaml", "b.pgm")
     }
-    assert load_map(job.cwd / "out.yaml").resolution == sample_maps.a.resolution
+    # Without --resolution: the finest of the inputs (b's 0.095 m/cell against a's 0.1).
+    assert load_map(job.cwd / "out.yaml").resolution == min(sample_maps.a.resolution, sample_maps.b.resolution)
 
 
 def test_merge_negative_pair_writes_nothing(runs):

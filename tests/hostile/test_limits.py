@@ -255,7 +255,7 @@ def test_transform_scaling_a_map_down_stays_within_the_inputs(small_pair, monkey
     """b shrunk 100 times lands inside a: a valid (if silly) canvas the size of a."""
     monkeypatch.setattr(merge_module, "align", _fake_alignment(SimilarityTransform(scale=0.01, translation=(10, 10))))
     a, b = small_pair
-    result = gridmerge.merge([a, b], method="sift")
+    result = gridmerge.merge([a, b], method="sift", resolution=a.resolution)
     assert result.success and result.grid.shape == a.shape
 
 

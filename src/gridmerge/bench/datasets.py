@@ -402,34 +402,12 @@ def _crop_box(known: np.ndarray, margins) -> tuple[int, int, int, int]:
     return x0, y0, x1, y1
 
 
-def _robot_maps(
-    world: _World,
-    vps_a,
-    vps_b,
-    rng: np.random.Generator,
-    *,
-    rotation_deg: float,
-    scale: float,
-    noise: float,
-    world_b: Optional[_World] = None,
-):
-    """Maps of robot a (the source's frame, cropped) and robot b (its own frame).
+def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg: float, scale: float, noise: float):
+    """The map a robot makes of ``wb`` from ``vps_b`` in its own frame: rotated by
+    ``rotation_deg``, shifted, cells ``scale`` times the source's, cropped, with noise.
 
-    Robot b explores ``world_b`` (default: ``world``). Returns ``a, b, b_to_source,
-    offset_a, known_b_in_source`` where ``b_to_source`` maps b's pixels to the pixels of
-    its source map and ``offset_a`` is a's crop offset in ``world``.
+    Returns ``b, M, known_b_in_source``: ``M`` maps the map's pixels to the source's.
     """
-    wb = world if world_b is None else world_b
-    src = world.grid
-    # Robot a: the source's frame, cut to what it knows plus 5-20 unknown cells.
-    a_clean = world.seen(vps_a)
-    ka = ~np.isnan(a_clean)
-    x0, y0, x1, y1 = _crop_box(ka, rng.integers(5, 21, size=4))
-    a_data = _add_noise(a_clean[y0:y1, x0:x1], noise, rng)
-    corner = src.pixel_to_metric([[x0 - 0.5, y1 - 0.5]])[0]
-    a = OccupancyGrid(a_data, resolution=src.resolution, origin=(float(corner[0]), float(corner[1]), src.origin[2]))
-
-    # Robot b: its own frame, rotated, shifted, cells `scale` times the source's.
     theta = math.radians(rotation_deg)
     A = _similarity(theta, scale)
     kb_src = wb.known(vps_b)
@@ -461,6 +439,37 @@ def _robot_maps(
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     ) > 0
+    return b, M, kb_in_src
+
+
+def _robot_maps(
+    world: _World,
+    vps_a,
+    vps_b,
+    rng: np.random.Generator,
+    *,
+    rotation_deg: float,
+    scale: float,
+    noise: float,
+    world_b: Optional[_World] = None,
+):
+    """Maps of robot a (the source's frame, cropped) and robot b (its own frame).
+
+    Robot b explores ``world_b`` (default: ``world``). Returns ``a, b, b_to_source,
+    offset_a, known_b_in_source`` where ``b_to_source`` maps b's pixels to the pixels of
+    its source map and ``offset_a`` is a's crop offset in ``world``.
+    """
+    wb = world if world_b is None else world_b
+    src = world.grid
+    # Robot a: the source's frame, cut to what it knows plus 5-20 unknown cells.
+    a_clean = world.seen(vps_a)
+    ka = ~np.isnan(a_clean)
+    x0, y0, x1, y1 = _crop_box(ka, rng.integers(5, 21, size=4))
+    a_data = _add_noise(a_clean[y0:y1, x0:x1], noise, rng)
+    corner = src.pixel_to_metric([[x0 - 0.5, y1 - 0.5]])[0]
+    a = OccupancyGrid(a_data, resolution=src.resolution, origin=(float(corner[0]), float(corner[1]), src.origin[2]))
+
+    b, M, kb_in_src = _robot_in_frame(wb, vps_b, rng, rotation_deg=rotation_deg, scale=scale, noise=noise)
     return a, b, M, (x0, y0), ka, kb_in_src
 
 

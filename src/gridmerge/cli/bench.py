@@ -109,7 +109,7 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     )
     aliases = _run_options(p, suppress=False)
     p.set_defaults(bench_command="run", bench_run1=None, bench_run2=None, bench_aliases=aliases)
-    sub = p.add_subparsers(dest="bench_command", metavar="{run,compare}")
+    sub = p.add_subparsers(dest="bench_command", metavar="{run,compare,fleet}")
     pr = sub.add_parser("run", parents=parents, help="run the benchmark (default)", description="Run the benchmark.")
     _run_options(pr, suppress=True)
     pc = sub.add_parser(
@@ -120,6 +120,23 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     )
     pc.add_argument("bench_run1", metavar="RUN1", help="results folder of the first run")
     pc.add_argument("bench_run2", metavar="RUN2", help="results folder of the second run")
+    pf = sub.add_parser(
+        "fleet",
+        parents=parents,
+        help="time fleet merges (2 to 16 robots, serial and parallel) and an incremental update",
+        description="Simulate fleets of robots exploring one building, merge each with 1 and more workers, "
+        "and re-merge one grown map incrementally; writes fleet.json and fleet.md into --out.",
+    )
+    pf.add_argument("--robots", dest="fleet_robots", default="2,4,8,16", metavar="N1,N2", help="fleet sizes (default 2,4,8,16)")
+    pf.add_argument("--workers", dest="fleet_workers", default="1,2", metavar="W1,W2", help="process-pool sizes (default 1,2)")
+    pf.add_argument("--source", dest="fleet_source", default=None, metavar="NAME",
+                    help="building: a benchmark source map name (e.g. willow) or none for a procedural one (default)")
+    pf.add_argument("--out", dest="fleet_out", default=None, metavar="DIR", help="results folder (default: bench-fleet-YYYYmmdd-HHMMSS)")
+    pf.add_argument("--data", dest="fleet_data", default=None, metavar="DIR", help="shared data folder (for --source)")
+    if _taken(pf, "--seed") is None:
+        pf.add_argument("--seed", dest="fleet_seed", type=int, default=0, metavar="S", help="seed of the fleets and merges (default 0)")
+    pf.add_argument("--progress", dest="fleet_progress", action="store_true", help="show a progress bar even when stderr is not a terminal")
+    pf.add_argument("--force", dest="fleet_force", action="store_true", help="replace the results in an existing folder")
     return p
 
 
@@ -222,6 +239,37 @@ def _cmd_compare(args) -> int:
     return EXIT_OK
 
 
+def _int_list(text: str, what: str) -> list:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise _BenchUsageError(f"{what} must be comma-separated whole numbers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise _BenchUsageError(f"{what} must be whole numbers >= 1, got {text!r}")
+    return values
+
+
+def _cmd_fleet(args) -> int:
+    from ..bench import fleet
+    from ..bench.datasets import source_map
+
+    robots = _int_list(args.fleet_robots, "--robots")
+    workers = _int_list(args.fleet_workers, "--workers")
+    out = Path(args.fleet_out) if args.fleet_out else Path(time.strftime("bench-fleet-%Y%m%d-%H%M%S"))
+    if (out / "fleet.json").exists() and not args.fleet_force:
+        raise _BenchUsageError(f"{out} holds results already; use --force to replace them")
+    source = None if args.fleet_source in (None, "building") else source_map(args.fleet_source, args.fleet_data)
+    bar = ProgressBar() if (args.fleet_progress or sys.stderr.isatty()) else None
+    seed = getattr(args, "fleet_seed", None)
+    if seed is None:  # a parent parser's --seed
+        seed = getattr(args, "seed", 0) or 0
+    result = fleet.benchmark(robots, workers, seed=seed, source=source, progress=bar)
+    result.save(out)
+    sys.stdout.write(result.to_markdown())
+    print(f"results: {out}")
+    return EXIT_OK
+
+
 def run(args) -> int:
     """Run ``gridmerge bench`` with parsed ``args``; returns the exit code (0 done).
 
@@ -231,4 +279,6 @@ def run(args) -> int:
     command = getattr(args, "bench_command", None) or "run"
     if command == "compare":
         return _cmd_compare(args)
+    if command == "fleet":
+        return _cmd_fleet(args)
     return _cmd_run(args)

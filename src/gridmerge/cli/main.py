@@ -27,8 +27,8 @@ from ..grid import DEFAULT_RESOLUTION
 from ..io import SAVE_MODES, load_map, save_map
 from ..io.map_server import YAML_SUFFIXES, yaml_image_path
 from ..limits import DEFAULT_LIMITS, Limits, extractor_for
-from ..merge import merge
-from ..samples import SAMPLE_KINDS, write_sample
+from ..merge import PAIR_STRATEGIES, SCALE_CHECKS, merge
+from ..samples import SAMPLE_KINDS, sample_outputs, write_sample
 from . import bench as bench_cli
 
 __all__ = ["main", "EXIT_OK", "EXIT_DECLINED", "EXIT_BAD_INPUT"]
@@ -109,11 +109,12 @@ def _parser() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--debug", action="store_true", help="show the traceback of errors")
     common.add_argument(
-        "--resolution",
+        "--image-resolution",
+        dest="image_resolution",
         type=float,
         default=None,
         help=f"resolution (m/cell) of maps given as bare images or .npy (default {DEFAULT_RESOLUTION}); "
-        "a map_server YAML keeps its own",
+        "a map_server YAML or a bag keeps its own",
     )
     common.add_argument("--method", choices=sorted(METHODS), default="hybrid", help="alignment method (default: hybrid)")
     common.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
@@ -133,18 +134,39 @@ def _parser() -> argparse.ArgumentParser:
     )
     pa.add_argument("a", metavar="A", help="reference map (map_server .yaml, .pgm/.png, or .npy)")
     pa.add_argument("b", metavar="B", help="map to align onto A")
+    pa.add_argument("--resolution", dest="image_resolution", type=float, default=argparse.SUPPRESS, help="same as --image-resolution")
 
     pm = sub.add_parser(
         "merge",
         parents=[common],
-        help="merge maps into one map_server map",
-        description="Merge maps into the frame of the first. Exit 0 merged, 1 declined (no output written), 2 bad input.",
+        help="merge two or more maps (files or ROS bags) into one map_server map",
+        description="Merge maps into the metric frame of the first (or --reference). Maps are map_server "
+        "YAMLs, images, .npy arrays, or ROS 1/ROS 2 bags (the last nav_msgs/OccupancyGrid of each topic). "
+        "Exit 0 merged (maps that overlap no other are reported unplaced), 1 no two maps could be merged "
+        "(no output written), 2 bad input.",
     )
-    pm.add_argument("maps", nargs="+", metavar="MAP", help="two or more maps; the first is the reference")
+    pm.add_argument("maps", nargs="+", metavar="MAP", help="maps or bags; together at least two maps")
     pm.add_argument("-o", "--output", required=True, metavar="OUT.yaml", help="merged map (map_server YAML; the image is written beside it)")
+    pm.add_argument("--topic", action="append", default=None, metavar="TOPIC",
+                    help="OccupancyGrid topic to read from the bags (repeat for several; default: every OccupancyGrid topic)")
+    pm.add_argument("--reference", metavar="NAME", default=None,
+                    help="the map whose frame the merged map keeps: a path or topic as given (default: the first map)")
+    pm.add_argument("--resolution", type=float, default=None, metavar="R",
+                    help="resolution (m/cell) of the merged map (default: the finest of the merged maps)")
     pm.add_argument("--fusion", choices=FUSION_RULES, default="average", help="cell fusion rule (default: average, the paper's eq. 9)")
+    pm.add_argument("--pairs", choices=PAIR_STRATEGIES, default="auto",
+                    help="pairs to align: all, or auto (all up to 8 maps, the likeliest beyond; default)")
+    pm.add_argument("--scale-check", choices=SCALE_CHECKS, default="warn",
+                    help="a pair whose scale disagrees with the maps' resolutions: warn (default), reject it, or off")
+    pm.add_argument("--workers", type=_count, default=None, metavar="N", help="align pairs in N local processes (default 1)")
+    pm.add_argument("--scheduler", default=None, metavar="ADDRESS", help="align pairs on a Dask cluster (tcp://host:8786)")
     pm.add_argument("--save-mode", choices=SAVE_MODES, default="trinary", help="image mode of the output (default: trinary, as map_saver)")
     pm.add_argument("--plot", metavar="PNG", help="also write a picture of the matches and the merged map")
+    pm.add_argument("--out-bag", metavar="BAG", default=None,
+                    help="also write the merged map (/map) and each map's transform (/tf_static, map -> NAME/map) "
+                    "into a new bag: a .bag file is ROS 1, anything else a ROS 2 bag folder")
+    pm.add_argument("--bag-storage", choices=("sqlite3", "mcap"), default="sqlite3", help="storage of a ROS 2 --out-bag (default sqlite3)")
+    pm.add_argument("--progress", action="store_true", help="show progress on stderr even when it is not a terminal")
     pm.add_argument("--force", action="store_true", help="overwrite existing output files")
     ps = sub.add_parser(
         "sample",
@@ -152,7 +174,8 @@ def _parser() -> argparse.ArgumentParser:
         description="Write a.yaml/a.pgm and b.yaml/b.pgm (and truth.json) into FOLDER.",
     )
     ps.add_argument("folder", metavar="FOLDER", help="an existing folder")
-    ps.add_argument("--kind", choices=SAMPLE_KINDS, default="robots", help="robots (default): two robots in one building; table1: the paper's experiment; different: two buildings")
+    ps.add_argument("--kind", choices=SAMPLE_KINDS, default="robots", help="robots (default): two robots in one building; table1: the paper's experiment; different: two buildings; "
+                    "fleet: eight robots of one building and one of another, as map files and a ROS 1 bag")
     ps.add_argument("--seed", type=int, default=0, help="building seed (default 0)")
     ps.add_argument("--force", action="store_true", help="overwrite existing files")
     ps.add_argument("--debug", action="store_true", help="show the traceback of errors")
@@ -226,7 +249,7 @@ def _capped_note(result, limits: Limits) -> str:
 
 def _cmd_align(args) -> int:
     limits = _limits(args)
-    a, b = _load_all([args.a, args.b], args.resolution, limits)
+    a, b = _load_all([args.a, args.b], args.image_resolution, limits)
     extractor = extractor_for(args.method, limits)
     r = align(a, b, method=args.method, rng=args.seed, max_keypoints=limits.max_keypoints, extractor=extractor)
     if args.json:
@@ -245,14 +268,64 @@ def _cmd_align(args) -> int:
     return EXIT_OK if r.success else EXIT_DECLINED
 
 
+def _read_inputs(args, limits: Limits):
+    """The maps named on the command line: files, and every chosen topic of every bag.
+
+    Returns ``(maps, names, child_frames, input_paths)``; a map from a bag is named by its
+    topic (``BAG:TOPIC`` when several bags hold that topic), a file by its path as given.
+    """
+    from ..io.bags import bag_topics, child_frame_for, is_bag, read_bag_maps
+
+    bags = [p for p in args.maps if is_bag(p)]
+    if args.topic and not bags:
+        raise _UsageError("--topic selects maps of ROS bags, but no input is a bag")
+    wanted: dict = {p: args.topic for p in bags}
+    if args.topic and len(bags) > 1:
+        # Several bags: each gives the chosen topics it has; every topic must be somewhere.
+        have = {p: {t for t, _, _ in bag_topics(p)} for p in bags}
+        for t in args.topic:
+            if not any(t in h or "/" + t.lstrip("/") in h for h in have.values()):
+                raise _UsageError(f"topic {t} is in none of the bags")
+        wanted = {p: [t for t in args.topic if t in have[p] or "/" + t.lstrip("/") in have[p]] for p in bags}
+    entries = []  # (map, name, child frame)
+    topics_seen: dict = {}
+    for p in args.maps:
+        if p in bags:
+            if wanted[p] == []:
+                continue
+            for grid in read_bag_maps(p, wanted[p], limits=limits):
+                topics_seen.setdefault(grid.name, []).append(p)
+                entries.append((grid, p, grid.name))
+        else:
+            entries.append((_load_all([p], args.image_resolution, limits)[0], p, None))
+    maps, names, frames = [], [], []
+    for k, (grid, path, topic) in enumerate(entries):
+        if topic is None:
+            name, frame = path, f"robot{k + 1}/map"
+        else:
+            name = topic if len(topics_seen[topic]) == 1 else f"{path}:{topic}"
+            frame = child_frame_for(topic) if len(topics_seen[topic]) == 1 else f"robot{k + 1}/map"
+        if frame == "map" or frame in frames:  # "map" is the merged map's own frame
+            frame = f"robot{k + 1}/map"
+        maps.append(grid)
+        names.append(name)
+        frames.append(frame)
+    inputs = [Path(p) for p in bags] + _input_files([p for p in args.maps if p not in bags], limits)
+    return maps, names, frames, inputs
+
+
 def _cmd_merge(args) -> int:
-    if len(args.maps) < 2:
-        raise _UsageError("merge needs at least two maps")
     out = Path(args.output)
     if out.suffix.lower() not in YAML_SUFFIXES:
         raise _UsageError(f"the output must be a map_server .yaml file, got {out}")
+    if args.resolution is not None and not (math.isfinite(args.resolution) and args.resolution > 0):
+        raise _UsageError(f"--resolution must be a number > 0, got {args.resolution}")
     limits = _limits(args)
-    inputs = _input_files(args.maps, limits)
+    from ..io.bags import is_bag
+
+    if len(args.maps) < 2 and not any(is_bag(p) for p in args.maps):
+        raise _UsageError("merge needs at least two maps")
+    inputs = _input_files([p for p in args.maps if not is_bag(p)], limits) + [Path(p) for p in args.maps if is_bag(p)]
     _check_output(out, inputs, args.force, "output")
     _check_output(out.with_suffix(".pgm"), inputs, args.force, "output image")
     if args.plot:
@@ -260,26 +333,73 @@ def _cmd_merge(args) -> int:
 
         require_matplotlib()
         _check_output(Path(args.plot), inputs, args.force, "plot")
-    maps = _load_all(args.maps, args.resolution, limits)
-    result = merge(maps, method=args.method, fusion=args.fusion, rng=args.seed, limits=limits)
-    if result.success:
-        save_map(result.grid, out, mode=args.save_mode)  # type: ignore[arg-type]
-        if args.plot:
-            from ..plot import plot_merge, save_plot
+    if args.out_bag:
+        bag = Path(args.out_bag)
+        if not bag.parent.is_dir():
+            raise OutputError(f"bag folder does not exist: {bag.parent}")
+        if any(_same_file(bag, q) for q in inputs):
+            raise OutputError(f"bag {bag} is one of the inputs; choose another name")
+        if bag.exists() and not args.force:
+            raise OutputError(f"bag {bag} exists; use --force to overwrite it")
+    maps, names, frames, _ = _read_inputs(args, limits)
+    if len(maps) < 2:
+        raise _UsageError(f"merge needs at least two maps, got {len(maps)}")
+    reference = 0
+    if args.reference is not None:
+        if args.reference not in names:
+            raise _UsageError(f"--reference {args.reference!r} is not one of the maps: {', '.join(names)}")
+        reference = names.index(args.reference)
+    show = bool(args.progress) or sys.stderr.isatty()
+    progress = None
+    if show and not args.json:
+        bar = bench_cli.ProgressBar()
 
-            # The picture shows the first placed map against the map it was aligned to.
-            k = next(i for i, parent in enumerate(result.parents) if parent is not None)
-            png = plot_merge(maps[result.parents[k]], maps[k], result.alignments[k], result.grid)  # type: ignore[arg-type, index]
+        def progress(stage, done, total):
+            bar(done, total, stage)
+
+    from ..parallel import executor_for
+
+    with executor_for(args.workers, args.scheduler) as executor:
+        result = merge(
+            maps, method=args.method, fusion=args.fusion, rng=args.seed, limits=limits, names=names,
+            reference=reference, resolution=args.resolution, pairs=args.pairs, scale_check=args.scale_check,
+            executor=executor, progress=progress,
+        )
+    if result.success:
+        if args.out_bag:
+            _write_out_bag(Path(args.out_bag), result, frames, args)
+        try:
+            save_map(result.grid, out, mode=args.save_mode)  # type: ignore[arg-type]
+        except BaseException:
+            if args.out_bag:
+                _remove_tree(Path(args.out_bag))
+            raise
+        if args.plot:
+            from ..plot import plot_fleet, plot_merge, save_plot
+
+            if len(maps) > 2:  # every map, and where each went in the merged map
+                png = plot_fleet(result)
+            else:  # the matches between the two maps, and the merged map
+                best = next(p for p in result.pairs if p.used)
+                png = plot_merge(maps[best.i], maps[best.j], best.result, result.grid)  # type: ignore[arg-type]
             save_plot(png, args.plot)
+    if not args.json:
+        for w in result.warnings:
+            print(f"gridmerge: warning: {w}", file=sys.stderr)
     if args.json:
         d = result.to_dict()
         d["output"] = str(out) if result.success else None
+        d["out_bag"] = str(args.out_bag) if result.success and args.out_bag else None
         _print_json(d)
     elif result.success:
-        print(f"{result.message}; wrote {out}" + (f" and {args.plot}" if args.plot else ""))
-        for name, t, al in zip(result.names, result.transforms, result.alignments):
-            if t is not None and al is not None:
-                print(f"  {name}: rotation {al.rotation_deg:.3f} deg, scale {al.scale:.5f}, confidence {al.confidence:.2f}")
+        wrote = [str(out)] + ([args.plot] if args.plot else []) + ([args.out_bag] if args.out_bag else [])
+        print(f"{result.message}; wrote {', '.join(wrote)}")
+        for k, name in enumerate(result.names):
+            m = result.metric(k)
+            if m is None:
+                continue
+            conf = result.confidences[k]
+            print(f"  {name}: x {m['x']:.3f} m, y {m['y']:.3f} m, yaw {m['yaw']:.5f} rad, scale {m['scale']:.5f}, confidence {conf:.2f}")
     else:
         print(f"not merged: {result.message}")
     if not args.json:
@@ -289,9 +409,29 @@ def _cmd_merge(args) -> int:
     return EXIT_OK if result.success else EXIT_DECLINED
 
 
+def _write_out_bag(path: Path, result, frames, args) -> None:
+    from ..io.bags import BagTransform, write_bag
+
+    transforms = []
+    for k in result.placed:
+        m = result.metric(k)
+        transforms.append(BagTransform(frames[k], m["x"], m["y"], m["yaw"]))
+    fmt = "ros1" if path.suffix.lower() == ".bag" else "ros2"
+    write_bag(path, result.grid, transforms, format=fmt, storage=args.bag_storage, overwrite=bool(args.force))
+
+
+def _remove_tree(path: Path) -> None:
+    import shutil
+
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.exists():
+        path.unlink()
+
+
 def _cmd_sample(args) -> int:
     folder = Path(args.folder)
-    for name in ("a.yaml", "a.pgm", "b.yaml", "b.pgm", "truth.json"):
+    for name in sample_outputs(args.kind):
         _check_output(folder / name, [], args.force, "output")
     written = write_sample(folder, args.kind, args.seed)
     print("wrote " + ", ".join(str(p) for p in written.values()))

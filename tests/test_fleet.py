@@ -1,0 +1,174 @@
+"""Fleets: many maps, one frame; growing maps merged incrementally; mixed resolutions."""
+
+import math
+
+import numpy as np
+import pytest
+
+import gridmerge
+from gridmerge import Merger
+from gridmerge.bench.fleet import earlier_version, placement_errors, simulate_fleet
+from gridmerge.errors import GridMergeError
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    return simulate_fleet(8, seed=0)
+
+
+@pytest.fixture(scope="module")
+def stranger():
+    # A robot of another building.
+    return simulate_fleet(1, seed=5, shape=(500, 700)).maps[0].replace(name="stranger")
+
+
+@pytest.fixture(scope="module")
+def fleet_merge(fleet, stranger):
+    return gridmerge.merge(fleet.maps + [stranger])
+
+
+def test_eight_robots_are_placed_within_2px_and_a_stranger_is_unplaced(fleet, fleet_merge):
+    m = fleet_merge
+    assert m.success, m.message
+    assert m.unplaced == ["stranger"] and m.transforms[8] is None
+    errors = placement_errors(fleet, m.transforms[:8])
+    assert all(e is not None and e <= 2.0 for e in errors), errors
+    assert "merged 8 of 9 maps" in m.message and "stranger" in m.message
+
+
+def test_fleet_merge_keeps_the_reference_frame_and_reports_each_map(fleet, fleet_merge):
+    m = fleet_merge
+    ref = fleet.maps[0]
+    # The reference's cells keep their metric coordinates in the merged map.
+    pts = np.array([[0.0, 0.0], [ref.width - 1.0, ref.height - 1.0], [10.0, 20.0]])
+    np.testing.assert_allclose(m.grid.metric_to_pixel(ref.pixel_to_metric(pts)), m.transforms[0](pts), atol=1e-6)
+    d = m.to_dict()
+    assert d["unplaced"] == ["stranger"] and d["reference"] == "robot1"
+    entries = {e["name"]: e for e in d["maps"]}
+    assert set(entries) == {f"robot{k}" for k in range(1, 9)} | {"stranger"}
+    assert not entries["stranger"]["placed"] and "matrix" not in entries["stranger"]
+    for k in range(8):
+        e = entries[f"robot{k + 1}"]
+        assert e["placed"] and np.array(e["matrix"]).shape == (2, 3)
+        assert set(e["metric"]) == {"x", "y", "yaw", "scale"} and abs(e["metric"]["scale"] - 1) < 0.02
+        assert 0.5 <= e["confidence"] <= 1.0
+    # The metric pose of each robot's frame agrees with the truth (robot frames: origin 0).
+    for k in range(1, 8):
+        truth_px = fleet.relative(0, k)
+        mine = fleet.maps[k]
+        truth_metric = ref.pixel_to_metric_matrix() @ truth_px @ mine.metric_to_pixel_matrix()
+        got = d["maps"][k]["metric"]
+        assert got["x"] == pytest.approx(truth_metric[0, 2], abs=0.15)
+        assert got["y"] == pytest.approx(truth_metric[1, 2], abs=0.15)
+        dyaw = (got["yaw"] - math.atan2(truth_metric[1, 0], truth_metric[0, 0]) + math.pi) % (2 * math.pi) - math.pi
+        assert abs(dyaw) < 0.01
+    # The graph has loops, and its edges agree.
+    assert m.graph.loops > 0 and max(m.graph.residuals.values()) < 5.0
+
+
+def test_the_stranger_was_tried_and_declined(fleet_merge):
+    tried = [p for p in fleet_merge.pairs if 8 in (p.i, p.j)]
+    assert tried and not any(p.success for p in tried)
+
+
+def test_reference_by_name_changes_the_frame(fleet):
+    maps = [fleet.maps[k] for k in (0, 5, 7)]  # three robots that all overlap
+    m = gridmerge.merge(maps, reference="robot6")
+    assert m.success and m.reference == 1 and m.unplaced == []
+    np.testing.assert_allclose(m.grid.origin[2], maps[1].origin[2])
+    with pytest.raises(GridMergeError, match="reference"):
+        gridmerge.merge(maps, reference="robot9")
+
+
+def test_merger_update_reuses_unchanged_work(fleet):
+    earlier = earlier_version(fleet.maps[2], keep=0.6, direction_deg=30)
+    assert earlier.shape != fleet.maps[2].shape  # grown maps move their origin
+    merger = Merger()
+    for k, g in enumerate(fleet.maps):
+        merger.update(earlier if k == 2 else g)
+    first = merger.merge()
+    assert first.success and first.stats.features_computed == 8 and first.stats.pairs_searched == 28
+    # Robot 3's map grew: only its features are recomputed; its pairs are re-verified,
+    # nothing is searched again.
+    merger.update(fleet.maps[2])
+    second = merger.merge()
+    assert second.success and second.unplaced == []
+    s = second.stats
+    assert s.features_computed == 1 and s.pairs_searched == 0 and s.pairs_reused == 21
+    assert s.align_s < 0.25 * first.stats.align_s
+    errors = placement_errors(fleet, second.transforms)
+    assert max(errors) <= 2.0, errors
+    assert {p.how for p in second.pairs if 2 in (p.i, p.j)} <= {"reverify", "predict"}
+    # Nothing changed: nothing is computed.
+    third = merger.merge()
+    assert third.stats.features_computed == 0 and third.stats.pairs_reused == 28 and third.stats.align_s == 0.0
+    for s_, t in zip(second.transforms, third.transforms):
+        np.testing.assert_allclose(s_.params, t.params)
+
+
+def test_merger_searches_a_new_map_and_forgets_a_removed_one(fleet):
+    merger = Merger()
+    for k in (0, 5, 7):
+        merger.update(fleet.maps[k])
+    assert merger.merge().success
+    merger.update(fleet.maps[6])
+    r = merger.merge()
+    assert r.success and r.unplaced == []
+    assert r.stats.pairs_searched == 3 and r.stats.pairs_reused == 3 and r.stats.features_computed == 1
+    merger.remove("robot6")
+    assert merger.names == ["robot1", "robot8", "robot7"]
+    r = merger.merge()
+    assert r.stats.pairs_searched == 0 and len(r.pairs) == 3
+    with pytest.raises(GridMergeError):
+        merger.remove("robot6")
+
+
+def test_merger_refuses_what_is_not_a_map():
+    with pytest.raises(GridMergeError):
+        Merger().update(np.zeros((3, 3)))
+    with pytest.raises(GridMergeError, match="at least two"):
+        Merger().merge()
+    with pytest.raises(GridMergeError):
+        Merger(pairs="some")
+    with pytest.raises(GridMergeError):
+        Merger(resolution=0.0)
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    # 0.02, 0.05 and 0.1 m/cell robots in a 0.05 m/cell building.
+    return simulate_fleet(3, seed=0, scales=(0.4, 1.0, 2.0), shape=(500, 700))
+
+
+def test_maps_of_different_resolutions_merge_at_the_finest(mixed):
+    res = [m.resolution for m in mixed.maps]
+    assert res == pytest.approx([0.02, 0.05, 0.1])
+    m = gridmerge.merge(mixed.maps)
+    assert m.success and m.unplaced == [] and m.warnings == []
+    assert m.grid.resolution == pytest.approx(0.02)
+    for k, e in enumerate(placement_errors(mixed, m.transforms)):
+        # In cells of the coarser of the reference and map k.
+        assert e * 0.02 / max(0.02, res[k]) <= 2.0, (k, e)
+    for k in range(3):
+        assert abs(m.metric(k)["scale"] - 1.0) < 0.02  # the scale found agrees with the resolutions
+
+
+def test_merged_resolution_can_be_chosen(mixed):
+    m = gridmerge.merge(mixed.maps[1:], resolution=0.1)
+    assert m.success and m.grid.resolution == pytest.approx(0.1)
+    ref = mixed.maps[1]
+    # The merged map keeps the reference's metric frame at the new resolution.
+    pts = np.array([[5.0, 7.0], [100.0, 50.0]])
+    np.testing.assert_allclose(m.grid.metric_to_pixel(ref.pixel_to_metric(pts)), m.transforms[0](pts), atol=1e-6)
+
+
+def test_a_scale_that_contradicts_the_resolutions_is_flagged(mixed):
+    # Robot 2 claims 0.02 m/cell but its cells are 0.05 m: the alignment's scale (2.5)
+    # and the resolutions (1) disagree.
+    liar = mixed.maps[1].replace(resolution=0.02)
+    maps = [mixed.maps[0], liar]
+    warned = gridmerge.merge(maps)
+    assert warned.success and len(warned.warnings) == 1 and "resolutions" in warned.warnings[0]
+    rejected = gridmerge.merge(maps, scale_check="reject")
+    assert not rejected.success and rejected.unplaced == [liar.name]
+    assert gridmerge.merge(maps, scale_check="off").warnings == []

@@ -1,0 +1,72 @@
+"""Executors: serial, a local process pool and a Dask cluster give the same merge."""
+
+import numpy as np
+import pytest
+
+import gridmerge
+from gridmerge.errors import GridMergeError
+from gridmerge.parallel import DaskExecutor, ProcessExecutor, SerialExecutor, executor_for
+
+
+def _square(x):
+    return x * x
+
+
+def test_executors_keep_the_items_order():
+    items = list(range(7))
+    with SerialExecutor() as s:
+        assert s.map(_square, items) == [x * x for x in items]
+    with ProcessExecutor(2) as p:
+        assert p.map(_square, items) == [x * x for x in items] and p.workers == 2
+        assert p.map(_square, []) == []
+
+
+def test_executor_for_picks_what_the_command_line_asks():
+    assert isinstance(executor_for(), SerialExecutor)
+    assert isinstance(executor_for(1), SerialExecutor)
+    with executor_for(2) as ex:
+        assert isinstance(ex, ProcessExecutor)
+    with pytest.raises(GridMergeError):
+        executor_for(0)
+
+
+def test_unreachable_scheduler_is_one_clear_error():
+    pytest.importorskip("distributed")
+    with pytest.raises(GridMergeError, match="Dask scheduler"):
+        DaskExecutor("tcp://127.0.0.1:9", timeout=1)
+
+
+@pytest.fixture(scope="module")
+def fleet3():
+    from gridmerge.bench.fleet import simulate_fleet
+
+    return simulate_fleet(3, seed=0, shape=(400, 560)).maps
+
+
+@pytest.fixture(scope="module")
+def serial_merge(fleet3):
+    return gridmerge.merge(fleet3, rng=3)
+
+
+def _same(a, b):
+    assert a.success and b.success
+    assert a.names == b.names and a.unplaced == b.unplaced
+    for s, t in zip(a.transforms, b.transforms):
+        assert (s is None) == (t is None)
+        if s is not None:
+            np.testing.assert_array_equal(s.params, t.params)
+    np.testing.assert_array_equal(np.nan_to_num(a.grid.data, nan=-1), np.nan_to_num(b.grid.data, nan=-1))
+    assert [(p.i, p.j, p.success, p.confidence) for p in a.pairs] == [(p.i, p.j, p.success, p.confidence) for p in b.pairs]
+
+
+def test_process_pool_merge_equals_serial(fleet3, serial_merge):
+    with ProcessExecutor(2) as ex:
+        _same(serial_merge, gridmerge.merge(fleet3, rng=3, executor=ex))
+
+
+def test_dask_local_cluster_merge_equals_serial(fleet3, serial_merge):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        with DaskExecutor(cluster.scheduler_address) as ex:
+            assert ex.workers == 2
+            _same(serial_merge, gridmerge.merge(fleet3, rng=3, executor=ex))
