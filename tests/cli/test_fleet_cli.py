@@ -73,6 +73,16 @@ def test_fleet_from_a_bag_places_eight_robots_and_leaves_the_stranger_out(bag_me
     assert (out / "fleet.png").read_bytes().startswith(b"\x89PNG")
 
 
+def test_the_same_fleet_from_a_ros2_bag_gives_the_same_merge(bag_merge, fleet_dir, tmp_path):
+    _, d, out = bag_merge
+    maps = read_bag_maps(fleet_dir / "fleet.bag")
+    write_map_messages(tmp_path / "fleet_ros2", [(m.name, m, 10**18 + k) for k, m in enumerate(maps)], storage="mcap")
+    code = main(["merge", str(tmp_path / "fleet_ros2"), "-o", str(tmp_path / "merged.yaml")])
+    assert code == 0
+    assert (tmp_path / "merged.pgm").read_bytes() == (out / "merged.pgm").read_bytes()
+    assert (tmp_path / "merged.yaml").read_text() == (out / "merged.yaml").read_text()
+
+
 def test_out_bag_holds_the_merged_map(bag_merge):
     _, _, out = bag_merge
     merged = load_map(out / "merged.yaml")  # trinary: grey cells between the thresholds

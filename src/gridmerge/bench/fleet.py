@@ -203,9 +203,10 @@ class FleetBenchmark:
     rows: list
     update: dict
     config: dict
+    real: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return {"config": self.config, "rows": self.rows, "update": self.update}
+        return {"config": self.config, "rows": self.rows, "update": self.update, "real": self.real}
 
     def to_markdown(self) -> str:
         lines = [
@@ -227,6 +228,24 @@ class FleetBenchmark:
                 f"pairs searched {u['pairs_searched']}, re-verified {u['pairs_reverified']}, reused {u['pairs_reused']}; "
                 f"max placement error after the update {_fmt(u['max_error_px'])} px.",
             ]
+        if self.real:
+            lines += [
+                "",
+                "Real fleets: every sensor map of a Halmstad environment merged at once, judged on the annotated pairs "
+                "(the data set's protocol, on each pair's relative transform in the merged map):",
+                "",
+                "| environment | maps | placed | annotated pairs | right | wrong | not placed | alignments dropped by the loops | merge (s) |",
+                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+            ]
+            for r in self.real:
+                lines.append(
+                    f"| {r['environment']} | {r['maps']} | {r['placed']} | {r['pairs']} | {r['right']} | {r['wrong']} | "
+                    f"{r['not_placed']} | {r['dropped_edges']} | {r['merge_s']:.1f} |"
+                )
+            wrong = [f"{x['a']}-{x['b']} ({x['error_px']:.0f} px, tolerance {x['tolerance_px']:.0f})"
+                     for r in self.real for x in r["per_pair"] if x["outcome"] == "wrong"]
+            if wrong:
+                lines += ["", "Pairs outside the tolerance: " + ", ".join(wrong) + "."]
         return "\n".join(lines) + "\n"
 
     def save(self, folder) -> None:
@@ -254,6 +273,8 @@ def benchmark(
     source: Optional[str | OccupancyGrid] = None,
     shape: Sequence[int] = (800, 1100),
     progress=None,
+    halmstad: Sequence[str] = ("HIH", "E5"),
+    data_dir=None,
 ) -> FleetBenchmark:
     """Time fleet merges of each size with each number of workers, and one update.
 
@@ -261,6 +282,9 @@ def benchmark(
     ----------
     robots : sequence of int
         Fleet sizes; each fleet is :func:`simulate_fleet` ``(n, seed, source=source)``.
+    halmstad : sequence of str
+        Halmstad environments merged as real fleets (:func:`halmstad_fleet`), when the
+        shared data is there.
     workers : sequence of int
         Process-pool sizes (1: serial).
     source, shape
@@ -338,6 +362,78 @@ def benchmark(
     import os
     import platform
 
+    real = []
+    from .datasets import resolve_data_dir
+
+    if halmstad and resolve_data_dir(data_dir) is not None:
+        for env in halmstad:
+            if progress is not None:
+                progress(total, total + 1, f"Halmstad {env} fleet")
+            real.append(halmstad_fleet(env, data_dir=data_dir, seed=seed))
     config = {"robots": list(robots), "workers": list(workers), "seed": seed, "source": fleets[robots[0]].meta["source"],
               "shape": list(shape), "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version()}
-    return FleetBenchmark(rows, update, config)
+    return FleetBenchmark(rows, update, config, real)
+
+
+def halmstad_fleet(env: str = "E5", *, data_dir=None, seed: int = 0, executor=None, progress=None) -> dict:
+    """Merge every sensor map of a Halmstad environment at once, as one fleet.
+
+    Scored on the annotated pairs with the data set's protocol (median point error at
+    most ``max(20, 2 x fit_median_residual_px)``): for every annotated sensor pair whose
+    two maps were both placed, the merge's relative transform ``T_a^-1 T_b`` is judged;
+    a pair with a map left unplaced is *not placed*, never wrong.
+
+    Returns
+    -------
+    dict
+        ``maps``, ``placed``, ``unplaced`` (names), ``pairs`` (annotated sensor pairs),
+        ``right``, ``wrong``, ``not_placed``, ``merge_s``, ``per_pair`` (list of dicts).
+    """
+    import json
+    import time
+    from pathlib import Path
+
+    from ..io import load_map
+    from ..merge import merge
+    from .datasets import resolve_data_dir
+    from .metrics import halmstad_point_error
+
+    root = resolve_data_dir(data_dir)
+    if root is None:
+        raise FileNotFoundError("the Halmstad maps need ../shared/data (see --data)")
+    folder = Path(root) / "halmstad"
+    spec = json.loads((folder / f"{env}_pairs.json").read_text())
+    stems = sorted(p.stem for p in (folder / env).glob(f"{env}_[0-9]*.png"))
+    maps = [load_map(folder / env / f"{s}.png").replace(name=s) for s in stems]
+    t0 = time.perf_counter()
+    r = merge(maps, rng=seed, executor=executor, progress=progress)
+    dt = time.perf_counter() - t0
+    index = {s: k for k, s in enumerate(stems)}
+    rows = []
+    for p in spec["pairs"]:
+        if p["kind"] != "sensor":
+            continue
+        ka, kb = index[p["a"]], index[p["b"]]
+        ta, tb = r.transforms[ka], r.transforms[kb]
+        row = {"a": p["a"], "b": p["b"]}
+        if ta is None or tb is None:
+            row["outcome"] = "not placed"
+        else:
+            err = halmstad_point_error(np.linalg.inv(ta.params) @ tb.params, p["points_a"], p["points_b"])
+            tol = max(20.0, 2.0 * float(p["fit_median_residual_px"]))
+            row.update(error_px=round(err, 2), tolerance_px=tol, outcome="right" if err <= tol else "wrong")
+        rows.append(row)
+    count = {o: sum(1 for x in rows if x["outcome"] == o) for o in ("right", "wrong", "not placed")}
+    return {
+        "environment": env,
+        "maps": len(maps),
+        "placed": len(r.placed),
+        "unplaced": list(r.unplaced),
+        "pairs": len(rows),
+        "right": count["right"],
+        "wrong": count["wrong"],
+        "not_placed": count["not placed"],
+        "merge_s": round(dt, 2),
+        "dropped_edges": len(r.graph.dropped) if r.graph is not None else 0,
+        "per_pair": rows,
+    }

@@ -132,7 +132,8 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     pf.add_argument("--source", dest="fleet_source", default=None, metavar="NAME",
                     help="building: a benchmark source map name (e.g. willow) or none for a procedural one (default)")
     pf.add_argument("--out", dest="fleet_out", default=None, metavar="DIR", help="results folder (default: bench-fleet-YYYYmmdd-HHMMSS)")
-    pf.add_argument("--data", dest="fleet_data", default=None, metavar="DIR", help="shared data folder (for --source)")
+    pf.add_argument("--data", dest="fleet_data", default=None, metavar="DIR", help="shared data folder (for --source and the Halmstad fleets)")
+    pf.add_argument("--no-halmstad", dest="fleet_halmstad", action="store_false", help="skip the real Halmstad fleets (HIH, E5)")
     if _taken(pf, "--seed") is None:
         pf.add_argument("--seed", dest="fleet_seed", type=int, default=0, metavar="S", help="seed of the fleets and merges (default 0)")
     pf.add_argument("--progress", dest="fleet_progress", action="store_true", help="show a progress bar even when stderr is not a terminal")
@@ -263,7 +264,8 @@ def _cmd_fleet(args) -> int:
     seed = getattr(args, "fleet_seed", None)
     if seed is None:  # a parent parser's --seed
         seed = getattr(args, "seed", 0) or 0
-    result = fleet.benchmark(robots, workers, seed=seed, source=source, progress=bar)
+    result = fleet.benchmark(robots, workers, seed=seed, source=source, progress=bar,
+                             halmstad=("HIH", "E5") if args.fleet_halmstad else (), data_dir=args.fleet_data)
     result.save(out)
     sys.stdout.write(result.to_markdown())
     print(f"results: {out}")
