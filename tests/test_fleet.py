@@ -172,3 +172,18 @@ def test_a_scale_that_contradicts_the_resolutions_is_flagged(mixed):
     rejected = gridmerge.merge(maps, scale_check="reject")
     assert not rejected.success and rejected.unplaced == [liar.name]
     assert gridmerge.merge(maps, scale_check="off").warnings == []
+
+
+def test_reverify_refines_a_nearby_pose_and_declines_a_wrong_one(fleet):
+    from gridmerge.merge import reverify
+    from gridmerge.transforms import AffineTransform, SimilarityTransform, corner_error
+
+    a, b = fleet.maps[0], fleet.maps[5]  # robots 1 and 6 overlap
+    truth = fleet.relative(0, 5)
+    near = SimilarityTransform(translation=(2.5, -2.0)) @ AffineTransform(truth)
+    r = reverify(a, b, near, runner_up_ratio=0.5)
+    assert r.success and r.details["reverified"]
+    assert corner_error(r.transform, truth, b.shape) < 1.0 < corner_error(near, truth, b.shape)
+    far = SimilarityTransform(translation=(60.0, 0.0)) @ AffineTransform(truth)
+    wrong = reverify(a, b, far, runner_up_ratio=0.5)
+    assert not wrong.success and wrong.transform is None and "declined" in wrong.message

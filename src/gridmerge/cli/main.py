@@ -113,6 +113,7 @@ def _parser() -> argparse.ArgumentParser:
         dest="image_resolution",
         type=float,
         default=None,
+        metavar="R",
         help=f"resolution (m/cell) of maps given as bare images or .npy (default {DEFAULT_RESOLUTION}); "
         "a map_server YAML or a bag keeps its own",
     )
