@@ -86,3 +86,15 @@ def test_an_edge_the_loops_contradict_is_dropped():
     assert [(e.i, e.j) for e in report.dropped] == [(0, 2)]
     for k in range(4):
         assert corner_error(got[k], poses[k], SHAPE) < 1e-6
+
+
+def test_robust_weights_stop_one_slightly_wrong_edge_pulling_every_map():
+    poses = _truth(5, seed=6)
+    edges = [_edge(poses, i, j) for i in range(5) for j in range(i + 1, 5) if (i, j) != (0, 3)]
+    # Within the loop tolerance, so not dropped, but 6 px off.
+    edges.append(_edge(poses, 0, 3, 1.0, noise=(6.0, 0.0)))
+    plain = optimize_poses(5, edges, placed=range(5), reference=0, shapes=[SHAPE] * 5, robust=None)
+    robust = optimize_poses(5, edges, placed=range(5), reference=0, shapes=[SHAPE] * 5)
+    err_plain = max(corner_error(plain[k], poses[k], SHAPE) for k in range(1, 5))
+    err_robust = max(corner_error(robust[k], poses[k], SHAPE) for k in range(1, 5))
+    assert err_plain > 1.0 and err_robust < 0.2 * err_plain

@@ -180,13 +180,37 @@ def optimize_poses(
     placed: Sequence[int],
     reference: int = 0,
     shapes: Sequence[tuple[int, int] | None] | None = None,
+    *,
+    robust: float | None = 1.5,
+    iterations: int = 10,
 ) -> list[AffineTransform | None]:
     """Similarity poses (each map's pixels -> the reference's) that best agree with all edges.
 
     Minimises ``sum_e w_e sum_p |T_i(E(p)) - T_j(p)|^2`` over the edges' points ``p``
     (in map ``j``'s pixels), with ``T_reference`` the identity and
-    ``w_e = confidence``. Linear least squares; maps outside ``placed`` stay ``None``.
+    ``w_e = confidence``: linear least squares; maps outside ``placed`` stay ``None``.
+
+    With ``robust`` (pixels), the weights are re-estimated ``iterations`` times as
+    ``confidence / (1 + (r_e / robust)^2)`` from each edge's RMS disagreement ``r_e``
+    (Cauchy's loss): one alignment that is off (a small overlap leaves a slightly wrong
+    rotation looking right) then stops pulling every map towards it, and shows its
+    disagreement in full.
     """
+    weights = [max(e.confidence, 1e-6) for e in edges]
+    poses = _solve_linear(n, edges, placed, reference, shapes, weights)
+    if robust is None or robust <= 0:
+        return poses
+    for _ in range(iterations):
+        res = edge_residuals(edges, poses, shapes)
+        new = [max(e.confidence, 1e-6) / (1.0 + (res.get((e.i, e.j), 0.0) / robust) ** 2) for e in edges]
+        if np.allclose(new, weights, rtol=1e-3, atol=1e-9):
+            break
+        weights = new
+        poses = _solve_linear(n, edges, placed, reference, shapes, weights)
+    return poses
+
+
+def _solve_linear(n, edges, placed, reference, shapes, weights) -> list[AffineTransform | None]:
     index = {k: c for c, k in enumerate(k for k in placed if k != reference)}
     m = len(index)
     poses: list[AffineTransform | None] = [None] * n
@@ -194,12 +218,12 @@ def optimize_poses(
     if m == 0:
         return poses
     blocks_a, blocks_b = [], []
-    for e in edges:
+    for e, weight in zip(edges, weights):
         if e.i not in index and e.i != reference or e.j not in index and e.j != reference:
             continue
         pts = e.points if e.points is not None else _default_points(None if shapes is None else shapes[e.j])
         q = e.transform(pts)  # in i's pixels
-        w = math.sqrt(max(e.confidence, 1e-6))
+        w = math.sqrt(weight)
         row = np.zeros((2 * len(pts), 4 * m))
         rhs = np.zeros(2 * len(pts))
         # T_i(q) - T_j(p) = 0, the reference's pose (the identity) moved to the right.

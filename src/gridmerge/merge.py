@@ -472,6 +472,32 @@ def _digest(grid: OccupancyGrid) -> bytes:
     return h.digest()
 
 
+def _overlap_points(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, samples: int = 6000) -> np.ndarray | None:
+    """Points of b (its pixels) spanning the cells b and a both know when b is moved by
+    ``t``: the overlap's centroid and its extreme points in 8 directions (``None`` when
+    the maps share fewer than 10 sampled cells). The joint least squares compares poses
+    there, so that an alignment constrains the rotation only as far as its overlap reaches.
+    """
+    ys, xs = np.nonzero(b.known)
+    if len(xs) == 0:
+        return None
+    step = max(1, len(xs) // samples)
+    pb = np.stack([xs[::step], ys[::step]], 1).astype(float)
+    q = np.rint(t(pb)).astype(np.int64)
+    h, w = a.shape
+    inside = (q[:, 0] >= 0) & (q[:, 1] >= 0) & (q[:, 0] < w) & (q[:, 1] < h)
+    on = np.zeros(len(pb), bool)
+    on[inside] = a.known[q[inside, 1], q[inside, 0]]
+    pb = pb[on]
+    if len(pb) < 10:
+        return None
+    centre = pb.mean(0)
+    angles = np.arange(8) * (np.pi / 4)
+    dirs = np.stack([np.cos(angles), np.sin(angles)], 1)
+    extremes = pb[np.argmax((pb - centre) @ dirs.T, axis=0)]
+    return np.vstack([centre[None], extremes])
+
+
 def _box_points(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform) -> np.ndarray | None:
     """Points of b (its pixels) spanning where b, moved by ``t``, overlaps a: the corners
     and centre of b's known box clipped to a's known box; ``None`` if they miss."""
@@ -892,7 +918,7 @@ class Merger:
                     warnings.append(p.note)
                     continue
                 warnings.append(p.note)
-            pts = _box_points(maps[i], maps[j], r.transform)
+            pts = _overlap_points(maps[i], maps[j], r.transform)
             edges.append(Edge(i, j, r.transform, max(float(r.confidence), 1e-3), pts))
         poses, report = solve(len(maps), edges, reference, shapes=[m.shape for m in maps],
                               loop_tolerance=self.loop_tolerance, joint=self.joint)
