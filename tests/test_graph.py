@@ -97,4 +97,4 @@ def test_robust_weights_stop_one_slightly_wrong_edge_pulling_every_map():
     robust = optimize_poses(5, edges, placed=range(5), reference=0, shapes=[SHAPE] * 5)
     err_plain = max(corner_error(plain[k], poses[k], SHAPE) for k in range(1, 5))
     err_robust = max(corner_error(robust[k], poses[k], SHAPE) for k in range(1, 5))
-    assert err_plain > 1.0 and err_robust < 0.2 * err_plain
+    assert err_plain > 3.0 and err_robust < 0.3 * err_plain
