@@ -169,3 +169,19 @@ def test_real_apartment_maps_all_sensor_pairs_merge_and_none_wrongly(shared_data
         assert r.success, (pair["a"], pair["b"], r.message)
         err = np.median(np.hypot(*(r.transform(np.array(pair["points_b"])) - np.array(pair["points_a"])).T))
         assert err <= max(20.0, 2 * pair["fit_median_residual_px"]), (pair["a"], pair["b"], err)
+
+
+def test_keypoints_first_skips_the_walls_only_when_settled():
+    a, b, truth = samples.robot_pair(0)
+    quick = align(a, b, rng=0)
+    full = align(a, b, rng=0, keypoints_first=0)
+    assert quick.success and full.success
+    assert "walls" not in full.details and full.details["candidates"] > quick.details["candidates"]
+    if "walls" in quick.details:  # settled by the keypoints: the same pose as the full search
+        assert quick.confidence >= 0.9 and quick.verification.wall_agreement >= 0.75
+        assert corner_error(quick.transform, full.transform, b.shape) < 0.5
+    assert corner_error(quick.transform, truth, b.shape) < 2.0
+    # A negative pair is never settled early.
+    na, nb = samples.negative_pair(0)
+    r = align(na, nb, rng=0)
+    assert not r.success and "walls" not in r.details

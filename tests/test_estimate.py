@@ -97,3 +97,29 @@ def test_keypoint_hypotheses_from_single_matches():
     # Hypotheses are distinct transforms.
     for h in hyps[1:]:
         assert corner_error(h.transform, best.transform, (600, 600)) > 1.0
+
+
+def test_proposal_scores_count_as_the_plain_formula():
+    from gridmerge.estimate import _proposal_scores
+
+    rng = np.random.default_rng(3)
+    n = 700
+    src = rng.uniform(0, 800, (n, 2))
+    truth = SimilarityTransform(rotation=0.4, scale=1.1, translation=(20, -30))
+    dst = truth(src) + rng.normal(0, 1.5, (n, 2))
+    dst[::3] = rng.uniform(0, 800, (len(dst[::3]), 2))
+    angle = 0.4 + rng.normal(0, 0.03, n)
+    scale = 1.1 * np.exp(rng.normal(0, 0.02, n))
+    cand = np.arange(0, n, 2)
+    cos, sin = np.cos(angle[cand]) * scale[cand], np.sin(angle[cand]) * scale[cand]
+    tx = dst[cand, 0] - (cos * src[cand, 0] - sin * src[cand, 1])
+    ty = dst[cand, 1] - (sin * src[cand, 0] + cos * src[cand, 1])
+    growth = 0.06 * scale[cand]
+    px = cos[:, None] * src[None, :, 0] - sin[:, None] * src[None, :, 1] + tx[:, None]
+    py = sin[:, None] * src[None, :, 0] + cos[:, None] * src[None, :, 1] + ty[:, None]
+    err = np.hypot(px - dst[None, :, 0], py - dst[None, :, 1])
+    dist = np.hypot(src[None, :, 0] - src[cand, None, 0], src[None, :, 1] - src[cand, None, 1])
+    expect = (err < 3.0 + growth[:, None] * dist).sum(1)
+    for block in (1, 7, 32, 1000):
+        got = _proposal_scores(src, dst, cand, cos, sin, tx, ty, growth, 3.0, block)
+        np.testing.assert_array_equal(got, expect)

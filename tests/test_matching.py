@@ -56,3 +56,56 @@ def test_mismatched_sizes_and_methods_are_errors():
         knn(D1, D2[:, :64])
     with pytest.raises(ValueError):
         knn(D1, D2, method="nope")
+
+
+def test_features_render_only_the_known_box():
+    from gridmerge import OccupancyGrid
+    from gridmerge.features import FeatureExtractor, GreyRenderer, _grey
+
+    rng = np.random.default_rng(0)
+    d = np.full((300, 400), np.nan)
+    d[50:250, 60:330] = (rng.random((200, 270)) < 0.1).astype(float)
+    d[100:104, 60:300] = 1.0
+    d[70, 70] = 0.37
+    grid = OccupancyGrid(d)
+    np.testing.assert_array_equal(_grey(grid.data, 127), grid.render())
+    fast = FeatureExtractor()(grid)
+    slow = FeatureExtractor(renderer=_FullGrey())(grid)  # renders the whole map, then cuts
+    np.testing.assert_array_equal(fast.xy, slow.xy)
+    np.testing.assert_array_equal(fast.descriptors, slow.descriptors)
+
+
+class _FullGrey:
+    def __call__(self, grid):
+        return grid.render(), None
+
+
+class _Separate:
+    """SIFT without its one-pass detect_and_compute: detect, then compute."""
+
+    binary = False
+
+    def __init__(self):
+        from gridmerge.features import SIFT
+
+        self._sift = SIFT()
+
+    def detect(self, image, mask=None):
+        return self._sift.detect(image, mask)
+
+    def compute(self, image, keypoints):
+        return self._sift.compute(image, keypoints)
+
+
+@pytest.mark.parametrize("cap", [0, 40])
+def test_one_pass_sift_finds_what_detect_then_compute_finds(cap):
+    from gridmerge import samples
+    from gridmerge.features import SIFT, FeatureExtractor
+
+    a, _, _ = samples.robot_pair(0)
+    one = FeatureExtractor(SIFT(), max_keypoints=cap)(a)
+    two = FeatureExtractor(_Separate(), max_keypoints=cap)(a)
+    assert len(one) > (cap or 100) - 1 and one.capped == two.capped == bool(cap)
+    np.testing.assert_array_equal(one.xy, two.xy)
+    np.testing.assert_array_equal(one.descriptors, two.descriptors)
+    np.testing.assert_array_equal(one.angle, two.angle)

@@ -16,3 +16,85 @@ def test_despeckle_frees_isolated_hits_only():
     assert np.isnan(out.data[0, 6]) and g.data[1, 1] == 1.0  # input untouched
     clean = OccupancyGrid(np.zeros((3, 3)))
     assert despeckle(clean) is clean
+
+
+import math
+
+import cv2
+import pytest
+
+from gridmerge import samples
+from gridmerge.fuse import warp_values
+from gridmerge.grid import OCCUPIED_THRESHOLD
+from gridmerge.transforms import SimilarityTransform
+from gridmerge.verify import WallScorer, _strided_cells, acceptance_index, verify
+
+
+def _verify_whole_frame(a, b, transform, tolerance):
+    """verify() as first written: b warped into the whole of a's frame."""
+    warped = warp_values(b.data, transform.params, a.shape, interpolation="nearest")
+    both = a.known & ~np.isnan(warped)
+    pa, pb = np.where(both, a.data, np.nan), np.where(both, warped, np.nan)
+    index, agr, dis = acceptance_index(pa, pb)
+    with np.errstate(invalid="ignore"):
+        wa, wb = pa > OCCUPIED_THRESHOLD, pb > OCCUPIED_THRESHOLD
+
+    def near(m):
+        return cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, 3) <= tolerance
+
+    shares = []
+    if wa.any() and wb.any():
+        shares = [np.count_nonzero(wa & near(wb)) / np.count_nonzero(wa), np.count_nonzero(wb & near(wa)) / np.count_nonzero(wb)]
+    elif wa.any() or wb.any():
+        shares = [0.0]
+    return index, agr, dis, float(np.mean(shares)) if shares else math.nan, int(np.count_nonzero(both))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_verify_on_the_footprint_equals_the_whole_frame(seed):
+    a, b, truth = samples.robot_pair(seed % 2)
+    rng = np.random.default_rng(seed)
+    t = SimilarityTransform(truth)
+    if seed >= 2:  # a wrong pose, partly outside a
+        t = SimilarityTransform(rotation=t.rotation + rng.normal(0, 0.5), scale=t.scale, translation=t.translation + rng.normal(0, 150, 2))
+    v = verify(a, b, t, tolerance=3.0)
+    index, agr, dis, wall, overlap = _verify_whole_frame(a, b, t, 3.0)
+    assert (v.agreement, v.disagreement, v.overlap_cells) == (agr, dis, overlap)
+    assert v.wall_agreement == pytest.approx(wall, nan_ok=True) and v.acceptance_index == pytest.approx(index, nan_ok=True)
+
+
+def test_verify_without_any_overlap():
+    d = np.zeros((30, 30))
+    d[10, :] = 1.0
+    g = OccupancyGrid(d)
+    v = verify(g, g, SimilarityTransform(translation=(500, 0)))
+    assert v.overlap_cells == 0 and math.isnan(v.acceptance_index) and math.isnan(v.wall_agreement)
+
+
+def test_strided_cells_are_numpys_nonzero_with_a_stride():
+    rng = np.random.default_rng(0)
+    for shape, p, k in [((300, 200), 0.3, 1000), ((50, 7000), 0.01, 77), ((3, 3), 0.5, 10), ((40, 40), 0.0, 5)]:
+        mask = rng.random(shape) < p
+        ys, xs = np.nonzero(mask)
+        step = max(1, len(xs) // k)
+        expect = np.stack([xs[::step], ys[::step]], 1).astype(float)
+        np.testing.assert_array_equal(_strided_cells(mask, k), expect.reshape(-1, 2))
+
+
+def test_wall_scorer_agrees_with_itself_and_tells_wrong_poses():
+    a, b, truth = samples.robot_pair(0)
+    s = WallScorer(a, b, tolerance=3.0)
+    right = s(SimilarityTransform(truth))
+    wrong = s(SimilarityTransform(truth) @ SimilarityTransform(translation=(40, 25)))
+    assert right.wall_agreement > 0.8 and right.overlap > 0.2 and right.walls_compared > 100
+    assert wrong.wall_agreement < right.wall_agreement - 0.3
+    same = WallScorer(a, a, tolerance=3.0)(SimilarityTransform())
+    assert same.wall_agreement == 1.0 and same.consistency == 1.0 and same.overlap == 1.0
+
+
+def test_despeckle_keeps_a_valid_read_only_grid():
+    d = np.zeros((9, 9), np.float32)
+    d[4, 4] = 1.0
+    out = despeckle(OccupancyGrid(d))
+    assert out.data[4, 4] == 0.0 and not out.data.flags.writeable
+    assert out.resolution == 0.05 and out == OccupancyGrid(np.zeros((9, 9)))

@@ -14,7 +14,12 @@ Methods
     for the translation, :mod:`gridmerge.correlate`). All are scored by wall agreement, the
     best distinct ones refined to sub-pixel precision against the cells of both maps, and
     the winner's confidence combines its wall agreement with how clearly it beats every
-    clearly different pose (repeated structure makes them close).
+    clearly different pose (repeated structure makes them close). The best keypoint
+    candidate is judged first, alone: when it settles the pose beyond doubt (confidence
+    at least ``AlignOptions.keypoints_first``, walls agreeing on 75 % of the overlap, no
+    clearly different keypoint candidate above 60 % of its score), the wall correlation
+    is skipped. The maps' preparation for scoring and refinement runs in a thread while
+    the keypoints are matched, and the two maps' keypoints are found in parallel.
 ``"sift"``
     The keypoint candidates alone, verified and refined the same way.
 ``"ransac"``
@@ -43,7 +48,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -55,7 +62,7 @@ from .estimate import paper_consensus, ransac, similarity_hypotheses
 from .features import FeatureExtractor, Features, SIFT
 from .grid import OccupancyGrid
 from .matching import knn, match_nn, match_smnn, match_snn
-from .refine import refine_direct
+from .refine import prepare_fields, refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 from .correlate import correlation_hypotheses
 from .verify import Verification, WallScorer, despeckle, verify
@@ -110,6 +117,11 @@ class AlignOptions:
     feature_pixels : int
         Keypoints are detected on at most this many pixels (a larger known area is
         detected at reduced resolution, then refined at full resolution); 0: always full.
+    keypoints_first : float
+        ``"hybrid"``: judge the best keypoint hypothesis alone first, and skip the wall
+        correlation when it gives at least this confidence, its walls agree on at least
+        75 % of the overlap and no clearly different keypoint hypothesis scores above 60 %
+        of its score; 0 always searches both.
     """
 
     ratio: float = 0.8
@@ -133,6 +145,7 @@ class AlignOptions:
     min_confidence: float = 0.5
     max_keypoints: int = 20000
     feature_pixels: int = 400_000
+    keypoints_first: float = 0.9
 
 
 @dataclass
@@ -488,50 +501,140 @@ def _candidate_scales(a: OccupancyGrid, b: OccupancyGrid, hyps, limit: int = 3) 
     return scales
 
 
+class _Judge:
+    """Scores, refines and ranks candidate transforms of one pair of maps, remembering
+    what it has computed (the keypoints-first stage and the full search share it)."""
+
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng):
+        self.a, self.b, self.opts, self.rng = a, b, opts, rng
+        self.scorer: WallScorer | None = None
+        self.box = b.corners()
+        self.fields: dict = {}
+        self._quick: dict = {}
+        self._memo: dict = {}
+        self._verified: dict = {}
+
+    def prepare(self) -> None:
+        """What every candidate will need: the wall scorer, and the refinement's fields
+        for the maps' resolution ratio (the usual scale). No random draw."""
+        self.scorer = WallScorer(self.a, self.b, tolerance=self.opts.wall_tolerance)
+        if self.opts.refine:
+            prepare_fields(self.a, self.b, self.fields, scale=self.b.resolution / self.a.resolution)
+
+    @staticmethod
+    def _key(t: AffineTransform) -> bytes:
+        return np.asarray(t.params, dtype=float).tobytes()
+
+    def quick(self, t: AffineTransform) -> float:
+        k = self._key(t)
+        if k not in self._quick:
+            self._quick[k] = self.scorer(t).wall_agreement
+        return self._quick[k]
+
+    def _refined(self, memo: dict, t: AffineTransform, rng=None):
+        k = self._key(t)
+        if k not in memo:
+            refined, report = refine_direct(self.a, self.b, t, rng=self.rng if rng is None else rng, cache=self.fields)
+            memo[k] = (refined, self.quick(refined)) if report.accepted else (t, self.quick(t))
+        return memo[k]
+
+    def _verify(self, t: AffineTransform) -> Verification:
+        k = self._key(t)
+        if k not in self._verified:
+            self._verified[k] = verify(self.a, self.b, t, tolerance=self.opts.wall_tolerance)
+        return self._verified[k]
+
+    def settle(self, candidates: list[tuple[AffineTransform, str]]):
+        """``(wall, best, kind, runner_up, verification)`` of the best of ``candidates``,
+        refined alone: a quick look that leaves the random stream of :meth:`decide` as it
+        was (the refinement draws from a generator of its own). The runner-up is the best
+        unrefined score of a clearly different candidate."""
+        scored = sorted(((self.quick(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
+        wall, best, kind = scored[0]
+        if self.opts.refine:
+            best, wall = self._refined({}, best, rng=_side_generator(self.rng))
+        runner_up = max((w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)), default=0.0)
+        return wall, best, kind, runner_up, self._verify(best)
+
+    def far_apart(self, s: AffineTransform, t: AffineTransform, px: float) -> bool:
+        return bool(np.hypot(*(s(self.box) - t(self.box)).T).max() >= px)
+
+    def decide(self, candidates: list[tuple[AffineTransform, str]]):
+        """``(wall, best, kind, runner_up, verification)`` of the best candidate."""
+        opts = self.opts
+        scored = sorted(((self.quick(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
+        # Refine the most promising distinct candidates against the maps and score them again.
+        chosen: list[list] = []  # [wall, transform, kind]
+        for wall, t, kind in scored:
+            if len(chosen) >= _REFINE_TOP:
+                break
+            if any(not self.far_apart(c[1], t, _SAME_POSE_PX) for c in chosen):
+                continue
+            if opts.refine:
+                t, wall = self._refined(self._memo, t)
+            chosen.append([wall, t, kind])
+        chosen.sort(key=lambda c: -c[0])
+        wall, best, kind = chosen[0]
+        # The best score of a clearly different pose: repeated structure makes it close to the best.
+        others = [w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)]
+        others += [c[0] for c in chosen[1:] if self.far_apart(best, c[1], _OTHER_POSE_PX)]
+        runner_up = max(others, default=0.0)
+        return wall, best, kind, runner_up, self._verify(best)
+
+
+def _side_generator(gen: np.random.Generator) -> np.random.Generator:
+    """A generator derived from ``gen`` without drawing from it."""
+    try:
+        return gen.spawn(1)[0]
+    except (AttributeError, TypeError, ValueError):  # no seed sequence to spawn from
+        return np.random.default_rng(0x5EED)
+
+
 def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
-    hyps, src, dst = _keypoint_hypotheses(fa, fb, opts)
+    judge = _Judge(a, b, opts, rng)
+    # The judge's preparation needs only the maps: it runs while the keypoints are
+    # matched (OpenCV and numpy leave the interpreter while they work).
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-prepare") as pool:
+        prepared = pool.submit(judge.prepare)
+        hyps, src, dst = _keypoint_hypotheses(fa, fb, opts)
+        prepared.result()
+    details: dict = {}
+    if hyps and opts.keypoints_first > 0:
+        # Keypoints first: when their hypotheses alone settle the pose beyond doubt, the
+        # wall correlation has nothing to add (and costs a third of the search).
+        wall, best, kind, runner_up, v = judge.settle([(h.transform, "keypoints") for h in hyps])
+        full_wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
+        ratio = runner_up / wall if wall > 0 else 1.0
+        confidence = _structural_confidence(full_wall, ratio)
+        if confidence >= opts.keypoints_first and full_wall >= _SETTLED_WALL and ratio <= _SETTLED_RATIO:
+            inl = best.residuals(src, dst) < opts.residual_threshold
+            details = {
+                "source": kind,
+                "candidates": len(hyps),
+                "walls": "skipped: the keypoints settled the pose",
+                "wall_agreement_quick": round(wall, 4),
+                "runner_up": round(runner_up, 4),
+                "runner_up_ratio": round(ratio, 4),
+            }
+            return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+        details["keypoints_first"] = {"confidence": round(confidence, 4), "wall_agreement": round(full_wall, 4), "runner_up_ratio": round(ratio, 4)}
     corr = correlation_hypotheses(a, b, scales=_candidate_scales(a, b, hyps))
     candidates = [(h.transform, "keypoints") for h in hyps] + [(h.transform, "walls") for h in corr]
     if not candidates:
-        return Estimate(None, np.zeros(len(src), bool), src, dst, "no candidate transform (no walls, no keypoint matches)")
-    scorer = WallScorer(a, b, tolerance=opts.wall_tolerance)
-    scored = sorted(((scorer(t).wall_agreement, t, kind) for t, kind in candidates), key=lambda c: -c[0])
-    # Refine the most promising distinct candidates against the maps and score them again.
-    box = b.corners()
-    chosen: list[tuple[float, AffineTransform, str]] = []
-    fields: dict = {}
-    for wall, t, kind in scored:
-        if len(chosen) >= _REFINE_TOP:
-            break
-        if any(np.hypot(*(c(box) - t(box)).T).max() < _SAME_POSE_PX for _, c, _ in chosen):
-            continue
-        if opts.refine:
-            refined, report = refine_direct(a, b, t, rng=rng, cache=fields)
-            if report.accepted:
-                t = refined
-                wall = scorer(t).wall_agreement
-        chosen.append((wall, t, kind))
-    chosen.sort(key=lambda c: -c[0])
-    wall, best, kind = chosen[0]
-    # The best score of a clearly different pose: repeated structure makes it close to the best.
-    def far(t):
-        return np.hypot(*(best(box) - t(box)).T).max() >= _OTHER_POSE_PX
-
-    others = [w for w, t, _ in scored if far(t)] + [w for w, t, _ in chosen[1:] if far(t)]
-    runner_up = max(others, default=0.0)
+        return Estimate(None, np.zeros(len(src), bool), src, dst, "no candidate transform (no walls, no keypoint matches)", details)
+    wall, best, kind, runner_up, v = judge.decide(candidates)
     inl = best.residuals(src, dst) < opts.residual_threshold if len(src) else np.zeros(0, bool)
-    v = verify(a, b, best, tolerance=opts.wall_tolerance)
     full_wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
     # The ambiguity is judged on the quick scores (all candidates have one), the walls on
     # the full verification of the winner.
     confidence = _structural_confidence(full_wall, runner_up / wall if wall > 0 else 1.0)
-    details = {
+    details.update({
         "source": kind,
         "candidates": len(candidates),
         "wall_agreement_quick": round(wall, 4),
         "runner_up": round(runner_up, 4),
         "runner_up_ratio": round(runner_up / wall, 4) if wall > 0 else 1.0,
-    }
+    })
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
 
 
@@ -625,6 +728,10 @@ def align(
     spec = METHODS[method]
     ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
+    if fa is None and fb is None and ext is not None and extractor is None:
+        # Both maps' features at once, each with its own extractor (OpenCV releases the
+        # interpreter while it works): a third less wall time on two cores.
+        fa, fb = _extract_both(ext, spec.extractor(opts), a, b)
     fa = fa if fa is not None else (ext(a) if ext is not None else Features.empty())
     fb = fb if fb is not None else (ext(b) if ext is not None else Features.empty())
     # Work on the known part of each map only: real maps are often mostly unknown.
@@ -684,10 +791,25 @@ def align(
 _CROP_MARGIN = 8
 #: Hypotheses refined against the maps (the best by their unrefined score).
 _REFINE_TOP = 3
+#: The keypoints-first stage of the hybrid method ends the search only when the full
+#: verification's wall agreement reaches this and no clearly different pose scores
+#: above this share of the winner's score (besides ``AlignOptions.keypoints_first``).
+_SETTLED_WALL = 0.75
+_SETTLED_RATIO = 0.6
 #: Two candidate transforms closer than this (b's corners, a's pixels) are one pose.
 _SAME_POSE_PX = 10.0
 #: ... and farther than this, two clearly different poses (for the ambiguity check).
 _OTHER_POSE_PX = 40.0
+
+
+def _extract_both(ext_a: FeatureExtractor, ext_b: FeatureExtractor, a: OccupancyGrid, b: OccupancyGrid):
+    """``(ext_a(a), ext_b(b))``, the two in parallel threads when there is a core for each."""
+    if (os.cpu_count() or 1) < 2:
+        return ext_a(a), ext_b(b)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-features") as pool:
+        job = pool.submit(ext_b, b)
+        fa = ext_a(a)
+        return fa, job.result()
 
 
 def _shifted(f: Features, offset: np.ndarray) -> Features:

@@ -71,7 +71,9 @@ def direction_histogram(grid: OccupancyGrid, bins: int = 180, smooth: float = 1.
     gx = cv2.Sobel(occ, cv2.CV_32F, 1, 0)
     gy = cv2.Sobel(occ, cv2.CV_32F, 0, 1)
     near = cv2.dilate(grid.occupied().astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    weight = np.hypot(gx, gy) * near
+    # Cells away from walls weigh nothing: only those near walls are looked at.
+    gx, gy = gx[near], gy[near]
+    weight = np.sqrt(gx * gx + gy * gy)
     angle = np.degrees(np.arctan2(gy, gx)) % 180.0
     hist, _ = np.histogram(angle, bins=bins, range=(0.0, 180.0), weights=weight)
     hist = hist.astype(float)
@@ -120,11 +122,19 @@ def _signed_walls(grid: OccupancyGrid, factor: float, free_weight: float, sigma:
     return cv2.GaussianBlur(walls - free_weight * free, (0, 0), sigma)
 
 
-def _peaks(a_img: np.ndarray, b_img: np.ndarray, n: int, suppress: int):
-    """``n`` best ``(dx, dy, value)``: shifts of b's image onto a's by cross-correlation."""
+def _peaks(a_img: np.ndarray, b_img: np.ndarray, n: int, suppress: int, spectra: dict | None = None):
+    """``n`` best ``(dx, dy, value)``: shifts of b's image onto a's by cross-correlation.
+
+    ``spectra`` keeps a's transforms by padded size, for many b images against one a.
+    """
     h = cv2.getOptimalDFTSize(a_img.shape[0] + b_img.shape[0])
     w = cv2.getOptimalDFTSize(a_img.shape[1] + b_img.shape[1])
-    fa = np.fft.rfft2(a_img, (h, w))
+    if spectra is None:
+        fa = np.fft.rfft2(a_img, (h, w))
+    else:
+        if (h, w) not in spectra:
+            spectra[(h, w)] = np.fft.rfft2(a_img, (h, w))
+        fa = spectra[(h, w)]
     fb = np.fft.rfft2(b_img, (h, w))
     c = np.fft.irfft2(fa * np.conj(fb), (h, w))  # c[dy, dx] = sum a[y + dy, x + dx] b[y, x]
     out = []
@@ -187,6 +197,7 @@ def correlation_hypotheses(
         return []
     factor = min(1.0, size / max(max(a.shape), max(b.shape) * max(scales)))
     a_img = _signed_walls(a, factor, free_weight, sigma)
+    spectra: dict = {}
     out: list[CorrelationHypothesis] = []
     hb, wb = b.shape
     corners = np.array([[0.0, 0.0], [wb, 0.0], [wb, hb], [0.0, hb]])
@@ -208,7 +219,7 @@ def correlation_hypotheses(
                     m = place @ from_coarse_b
                     shape = (int(math.ceil(hi[0] - lo[0])) + 1, int(math.ceil(hi[1] - lo[1])) + 1)
                     warped = cv2.warpAffine(b_img, m[:2], shape, flags=cv2.INTER_LINEAR)
-                    for dx, dy, value in _peaks(a_img, warped, peaks, suppress=4):
+                    for dx, dy, value in _peaks(a_img, warped, peaks, suppress=4, spectra=spectra):
                         shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
                         full = np.linalg.inv(coarse) @ shift @ place
                         out.append(CorrelationHypothesis(SimilarityTransform(full), value, math.degrees(theta) % 360.0, s))

@@ -9,6 +9,20 @@ free areas of a map cost nothing.
 
 The smoothed field is a normalised convolution, ``G * (p k) / G * k`` with ``k`` the known
 mask, so unknown cells never pull walls towards them.
+
+Every level's fields cover whole maps and are shared through ``cache`` by all the
+candidates refined on one pair (and can be computed ahead: :func:`prepare_fields`); of
+map b only the cells near structure and their values are kept.
+
+Maps of more than :data:`LARGE_CELLS` cells are refined coarse to fine in resolution as
+well, so that time and memory stay bounded: levels smoothed by at least
+:data:`COARSE_SIGMA` of a's pixels run on both maps reduced by 2 (a Gaussian prefilter,
+then every other cell; the smoothing, not the cells, limits those levels' precision), and
+the finest level runs at full resolution with b's cells judged block by block from a
+random pool that the candidates share, and a's field computed on the box they reach only.
+Smaller maps run every level at full resolution, exactly as the refinement was first
+written (the reduced levels converge to slightly different poses on real maps that bend,
+which changes borderline decisions).
 """
 
 from __future__ import annotations
@@ -22,7 +36,7 @@ import numpy as np
 from .grid import OccupancyGrid
 from .transforms import SimilarityTransform
 
-__all__ = ["refine_direct", "RefineReport"]
+__all__ = ["refine_direct", "RefineReport", "prepare_fields"]
 
 
 @dataclass(frozen=True)
@@ -51,16 +65,97 @@ class RefineReport:
     rms_after: float
 
 
-def _field(grid: OccupancyGrid, sigma: float):
-    known = grid.known.astype(np.float32)
-    vals = np.nan_to_num(grid.data, nan=0.0).astype(np.float32) * known
-    sk = cv2.GaussianBlur(known, (0, 0), sigma)
-    sv = cv2.GaussianBlur(vals, (0, 0), sigma)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        f = np.where(sk > 1e-3, sv / np.maximum(sk, 1e-6), 0.0).astype(np.float32)
+#: Maps of more cells than this are refined coarse to fine in resolution (smaller ones
+#: at full resolution throughout, whose whole-map fields are cheap enough).
+LARGE_CELLS = 6_000_000
+#: On large maps, levels smoothed by at least this many of a's pixels run at half resolution.
+COARSE_SIGMA = 1.5
+
+
+def _auto_factors(sigmas, large: bool) -> tuple[int, ...]:
+    return tuple(2 if large and s >= COARSE_SIGMA else 1 for s in sigmas)
+
+
+def _planes(grid: OccupancyGrid, box, factor: int):
+    """``(known, known * value)`` of ``grid``'s ``box`` as float32, reduced by ``factor``:
+    smoothed by a Gaussian of :func:`_prefilter` cells, then every ``factor``-th cell
+    of every ``factor``-th row (reduced cell ``(x, y)`` is cell ``(factor x, factor y)``).
+    A Gaussian, unlike block means, looks the same from every direction: the reduced
+    fields of two maps turned against each other still match. Large boxes are reduced
+    in bands of rows, so that no full-resolution copy of them is ever made."""
+    x0, y0, x1, y1 = box
+    if factor <= 1:
+        return _raw_planes(grid.data[y0:y1, x0:x1])
+    s = _prefilter(factor)
+    reach = (int(round(s * 8 + 1)) | 1) // 2  # GaussianBlur's kernel radius
+    h, w = y1 - y0, x1 - x0
+    rows = -(-h // factor)
+    k_out = np.empty((rows, -(-w // factor)), np.float32)
+    v_out = np.empty_like(k_out)
+    band = max(1, (1 << 21) // max(1, w * factor))  # reduced rows per band
+    for r0 in range(0, rows, band):
+        r1 = min(rows, r0 + band)
+        lo, hi = r0 * factor, min(h, (r1 - 1) * factor + 1)  # full rows kept
+        a0, a1 = max(0, lo - reach), min(h, hi + reach)  # ... and those the blur reaches
+        k, v = _raw_planes(grid.data[y0 + a0 : y0 + a1, x0:x1])
+        # Cut edges get their true neighbours; the map's own edges are reflected as
+        # GaussianBlur reflects them on the whole map.
+        k = cv2.GaussianBlur(k, (0, 0), s)[lo - a0 : hi - a0 : factor, ::factor]
+        v = cv2.GaussianBlur(v, (0, 0), s)[lo - a0 : hi - a0 : factor, ::factor]
+        k_out[r0:r1], v_out[r0:r1] = k, v
+    return k_out, v_out
+
+
+def _raw_planes(data: np.ndarray):
+    v = data.astype(np.float32)
+    k = (~np.isnan(v)).astype(np.float32)
+    cv2.patchNaNs(v, 0.0)
+    return k, v
+
+
+def _prefilter(factor: int) -> float:
+    """Smoothing (cells) before keeping every ``factor``-th cell (1 for 2, as a Gaussian pyramid)."""
+    return 0.5 * factor
+
+
+def _smoothed(k: np.ndarray, v: np.ndarray, sigma: float):
+    """The normalised convolution, its gradient and the smoothed known mask (float32)."""
+    sk = cv2.GaussianBlur(k, (0, 0), sigma)
+    f = cv2.GaussianBlur(v, (0, 0), sigma)
+    np.divide(f, np.maximum(sk, 1e-6), out=f)
+    np.copyto(f, 0.0, where=sk <= 1e-3)
     gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
     gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 8.0)
     return f, gx, gy, sk
+
+
+def _level_sigma(sigma: float, factor: int) -> float:
+    """Smoothing in reduced cells that, after :func:`_planes`' prefilter, totals ``sigma`` cells."""
+    if factor <= 1:
+        return sigma
+    pre = _prefilter(factor)
+    return math.sqrt(max(sigma * sigma - pre * pre, 0.25 * factor * factor)) / factor
+
+
+def _a_field(grid: OccupancyGrid, box, factor: int, sigma: float, planes=None):
+    """Field, x and y gradients, smoothed known mask of ``box`` (float32 images).
+    ``planes``: :func:`_planes` of that box, when already computed."""
+    k, v = planes if planes is not None else _planes(grid, box, factor)
+    return _smoothed(k, v, _level_sigma(sigma, factor))
+
+
+def _b_points(grid: OccupancyGrid, box, factor: int, sigma: float, planes=None):
+    """Cells of b near structure (reduced coordinates of ``box``) and their field values.
+    ``planes``: :func:`_planes` of the box, when already computed."""
+    k, v = planes if planes is not None else _planes(grid, box, factor)
+    f, gx, gy, sk = _smoothed(k, v, _level_sigma(sigma, factor))
+    ys, xs = np.nonzero((sk > 0.9) & (np.hypot(gx, gy) > 0.01) & (k > 0.5))
+    return xs, ys, f[ys, xs].astype(np.float64)
+
+
+def _scaling(f: float, offset=(0.0, 0.0)) -> np.ndarray:
+    """Reduced pixels of a box at ``offset`` -> full pixels: ``x = f x' + offset``."""
+    return np.array([[f, 0.0, offset[0]], [0.0, f, offset[1]], [0.0, 0.0, 1.0]])
 
 
 _REMAP_MAX = 32767
@@ -75,7 +170,7 @@ def _cached(cache: dict | None, key, compute):
 
 
 def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bilinear values of ``img`` at ``(N, 2)`` points (0 outside)."""
+    """Bilinear values of ``img`` (``(H, W)`` or ``(H, W, C)``) at ``(N, 2)`` points (0 outside)."""
     n = len(xy)
     # remap wants maps shaped like an image of fewer than 32767 rows: fold the points.
     width = 1024
@@ -87,7 +182,7 @@ def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
         img, mx.reshape(rows, width), my.reshape(rows, width), interpolation=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
     )
-    return out.reshape(-1)[:n]
+    return out.reshape(rows * width, -1)[:n] if img.ndim == 3 else out.reshape(-1)[:n]
 
 
 def _corner_shift(t0: np.ndarray, t1: np.ndarray, shape) -> float:
@@ -95,6 +190,174 @@ def _corner_shift(t0: np.ndarray, t1: np.ndarray, shape) -> float:
     c = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [w - 1.0, h - 1.0, 1.0], [0.0, h - 1.0, 1.0]])
     d = (c @ t0.T)[:, :2] - (c @ t1.T)[:, :2]
     return float(np.hypot(d[:, 0], d[:, 1]).max())
+
+
+def _whole(grid: OccupancyGrid):
+    return (0, 0, grid.width, grid.height)
+
+
+def _box_of(points: np.ndarray, grow: float, shape):
+    """Integer bounding box ``(x0, y0, x1, y1)`` of ``points`` grown by ``grow``, clipped."""
+    h, w = shape
+    lo = np.floor(points.min(0) - grow)
+    hi = np.ceil(points.max(0) + grow) + 1
+    x0, y0 = int(max(0, lo[0])), int(max(0, lo[1]))
+    x1, y1 = int(min(w, hi[0])), int(min(h, hi[1]))
+    return (x0, y0, max(x0, x1), max(y0, y1))
+
+
+def _gaussian_taps(sigma: float) -> np.ndarray:
+    """The kernel ``cv2.GaussianBlur`` uses on float images for ``sigma``."""
+    ksize = int(round(sigma * 4 * 2 + 1)) | 1
+    return cv2.getGaussianKernel(ksize, sigma, cv2.CV_64F).ravel()
+
+
+def _block_fields(data: np.ndarray, bx: np.ndarray, by: np.ndarray, c: int, sigma: float):
+    """What :func:`_smoothed` gives at full resolution, computed for the ``c x c`` blocks
+    of cells at block coordinates ``(bx, by)`` (cells ``x = c bx + j``, ``y = c by + i``)
+    from each block's neighbourhood of ``data`` (NaN unknown) only.
+
+    Returns ``(x, y, field, gx, gy, smoothed known, known)``, one value per cell. Blocks
+    closer to the border than the kernel's reach are left out.
+    """
+    taps = _gaussian_taps(sigma).astype(np.float32)
+    r = len(taps) // 2
+    reach = r + 1  # the gradient needs the field one cell around
+    h, w = data.shape
+    keep = (c * bx - reach >= 0) & (c * bx + c - 1 + reach < w) & (c * by - reach >= 0) & (c * by + c - 1 + reach < h)
+    bx, by = bx[keep], by[keep]
+    side = c + 2 * reach  # the window of a block
+    outs = c + 2  # smoothed values at offsets -1 .. c from the block's first cell
+    m = np.zeros((side, outs), np.float32)
+    for o in range(outs):
+        m[o : o + 2 * r + 1, o] = taps
+    d = np.arange(side)
+    offsets = (d[:, None] * w + d[None, :]).reshape(-1)
+    flat = data.reshape(-1)
+    wts = np.array([1.0, 2.0, 1.0], np.float32) / 8.0
+    sub = np.arange(c)
+    res = []
+    for s0 in range(0, len(bx), 4096):  # bounded memory
+        x0 = c * bx[s0 : s0 + 4096] - reach
+        y0 = c * by[s0 : s0 + 4096] - reach
+        k = len(x0)
+        win = flat.take((y0 * w + x0)[:, None] + offsets[None, :]).astype(np.float32, copy=False)
+        known = ~np.isnan(win)
+        both = np.stack([known.astype(np.float32), np.where(known, win, np.float32(0.0))])  # (2, k, side^2)
+        # Separable smoothing, rows then columns, each one matrix product.
+        t = (both.reshape(2 * k * side, side) @ m).reshape(2, k, side, outs).transpose(0, 1, 3, 2)
+        sm = (t.reshape(2 * k * outs, side) @ m).reshape(2, k, outs, outs).transpose(0, 1, 3, 2)  # [., ., y, x]
+        sk, sv = sm[0], sm[1]
+        f = np.where(sk > 1e-3, sv / np.maximum(sk, 1e-6), np.float32(0.0))
+        kn = known.reshape(k, side, side)
+        for i in range(c):
+            for j in range(c):
+                gx = (f[:, i : i + 3, j + 2] - f[:, i : i + 3, j]) @ wts
+                gy = (f[:, i + 2, j : j + 3] - f[:, i, j : j + 3]) @ wts
+                res.append((x0 + reach + j, y0 + reach + i, f[:, i + 1, j + 1], gx, gy, sk[:, i + 1, j + 1], kn[:, reach + i, reach + j]))
+    if not res:
+        z = np.zeros(0, np.float32)
+        e = np.zeros(0, np.int64)
+        return e, e, z, z, z, z, np.zeros(0, bool)
+    return tuple(np.concatenate(col) for col in zip(*res))
+
+
+def _landing(a: OccupancyGrid, params: np.ndarray, x: np.ndarray, y: np.ndarray, t: np.ndarray):
+    """The cells ``(x, y)`` of b (and their values ``t``) that ``params`` puts on a's known cells."""
+    ha, wa = a.shape
+    q = np.rint(np.stack([x, y], axis=1) @ params[:2, :2].T + params[:2, 2])
+    ok = (q[:, 0] >= 0) & (q[:, 0] < wa) & (q[:, 1] >= 0) & (q[:, 1] < ha)
+    idx = np.flatnonzero(ok)
+    ok[idx] = ~np.isnan(a.data[q[idx, 1].astype(np.int64), q[idx, 0].astype(np.int64)])
+    return x[ok], y[ok], t[ok]
+
+
+
+#: Blocks of b judged at once at full resolution (a fixed size, so that the pool of judged
+#: cells does not depend on which candidate asked first).
+_POOL_CHUNK = 2048
+
+
+def _fine_points(a: OccupancyGrid, b: OccupancyGrid, params: np.ndarray, coarse_cells, coarse: int, sigma: float, max_points: int, gen, pool: dict):
+    """Up to ``max_points`` full-resolution cells of b near structure (as
+    :func:`_b_points` would select them) that land on a's known cells under ``params``,
+    and their field values.
+
+    The cells are drawn at random among the blocks of the structure found at reduced
+    resolution (``coarse_cells``, reduced by ``coarse``) and judged block by block at
+    full resolution; ``pool`` keeps what was judged, for the next candidate.
+    """
+    cx, cy = coarse_cells
+    if "order" not in pool:
+        pool.update(order=gen.permutation(len(cx)), next=0, chunks=[])
+    kept_x, kept_y, kept_t = [], [], []
+    count, i = 0, 0
+    while count < max_points:
+        if i == len(pool["chunks"]):
+            if pool["next"] >= len(pool["order"]):
+                break
+            blocks = np.sort(pool["order"][pool["next"] : pool["next"] + _POOL_CHUNK])
+            pool["next"] += _POOL_CHUNK
+            x, y, f, gx, gy, sk, known = _block_fields(b.data, cx[blocks], cy[blocks], coarse, sigma)
+            good = (sk > 0.9) & (gx * gx + gy * gy > 1e-4) & known
+            pool["chunks"].append((x[good], y[good], f[good].astype(np.float64)))
+        x, y, t = _landing(a, params, *pool["chunks"][i])
+        i += 1
+        kept_x.append(x)
+        kept_y.append(y)
+        kept_t.append(t)
+        count += len(x)
+    if not kept_x:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    x, y, t = (np.concatenate(c) for c in (kept_x, kept_y, kept_t))
+    if len(x) > max_points:
+        pick = np.sort(gen.choice(len(x), max_points, replace=False))
+        x, y, t = x[pick], y[pick], t[pick]
+    return x, y, t
+
+
+def _b_level(sigma_a: float, factor_a: int, scale: float) -> tuple[float, int]:
+    """b's smoothing and reduction for a level smoothed by ``sigma_a`` of a's cells and
+    reduced by ``factor_a``, at ``scale`` (a's cells per b cell)."""
+    # Clamped: an extreme scale would make the blur enormous (and slow) for nothing.
+    sigma_b = min(max(0.5, sigma_a / max(scale, 1e-6)), 8.0 * sigma_a)
+    sigma_b = round(sigma_b * 50) / 50  # 2 % steps, so that nearby scales share a field
+    fb = max(1, int(round(factor_a / max(scale, 1e-6)))) if factor_a > 1 else 1
+    return sigma_b, fb
+
+
+def _cached_planes(grid: OccupancyGrid, cache, which: str, factor: int):
+    if grid.data.size > LARGE_CELLS:  # not worth their memory: each level needs them once
+        return _planes(grid, _whole(grid), factor)
+    return _cached(cache, (which + " planes", factor), lambda: _planes(grid, _whole(grid), factor))
+
+
+def _level_field(a: OccupancyGrid, cache, sigma: float, factor: int):
+    """a's whole-map field of a level (cached)."""
+    return _cached(cache, ("a", sigma, factor), lambda: _a_field(a, _whole(a), factor, sigma, planes=_cached_planes(a, cache, "a", factor)))
+
+
+def _level_points(b: OccupancyGrid, cache, sigma: float, factor: int):
+    """b's cells near structure at a level, and their field values (cached)."""
+    return _cached(cache, ("b", sigma, factor), lambda: _b_points(b, _whole(b), factor, sigma, planes=_cached_planes(b, cache, "b", factor)))
+
+
+def prepare_fields(a: OccupancyGrid, b: OccupancyGrid, cache: dict, *, scale: float = 1.0, sigmas=(3.0, 1.5, 1.0)) -> dict:
+    """Fill ``cache`` with the fields :func:`refine_direct` will need (with the same
+    ``cache`` and ``sigmas``) for transforms of about ``scale``, so that they can be
+    computed ahead, e.g. in a thread while candidates are being found. Returns ``cache``."""
+    if max(*a.shape, *b.shape) >= _REMAP_MAX:
+        return cache
+    sigmas = tuple(float(s) for s in sigmas)
+    large = max(a.data.size, b.data.size) > LARGE_CELLS
+    for sigma_a, fa in zip(sigmas, _auto_factors(sigmas, large)):
+        sigma_b, fb = _b_level(sigma_a, fa, scale)
+        if fa == 1 and fb == 1 and large:
+            _level_points(b, cache, sigma_b, 2)
+        else:
+            _level_field(a, cache, sigma_a, fa)
+            _level_points(b, cache, sigma_b, fb)
+    return cache
 
 
 def refine_direct(
@@ -108,6 +371,7 @@ def refine_direct(
     max_shift: float = 12.0,
     rng=0,
     cache: dict | None = None,
+    factors=None,
 ) -> tuple[SimilarityTransform, RefineReport]:
     """Refine ``initial`` (b pixels -> a pixels) against the cells of both maps.
 
@@ -129,44 +393,72 @@ def refine_direct(
     cache : dict, optional
         Smoothed fields from earlier calls on the same two maps (pass the same dict to
         refine several candidates cheaply).
+    factors : sequence of int, optional
+        Resolution reduction of each level (in a's cells; b's is chosen to match at the
+        transform's scale). Default: all 1 (full resolution), except on maps of more than
+        :data:`LARGE_CELLS` cells: 2 for levels smoothed by at least :data:`COARSE_SIGMA`
+        pixels.
 
     Returns
     -------
     transform : SimilarityTransform
         The refined transform, or ``initial`` when refinement was not accepted.
     report : RefineReport
+        ``rms_before`` and ``rms_after`` are measured at the last level.
     """
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     if max(*a.shape, *b.shape) >= _REMAP_MAX:
         # OpenCV's remap cannot sample images this long; keep the initial estimate.
         return initial, RefineReport(False, 0, 0, 0.0, math.nan, math.nan)
+    sigmas = tuple(float(s) for s in sigmas)
+    large = max(a.data.size, b.data.size) > LARGE_CELLS
+    factors = _auto_factors(sigmas, large) if factors is None else tuple(max(1, int(f)) for f in factors)
+    if len(factors) != len(sigmas):
+        raise ValueError("factors and sigmas must have the same length")
     p = initial.params.copy()
     steps = 0
     npts = 0
     huber = 0.1
     rms_before = rms_after = math.nan
-    for level, sigma_a in enumerate(sigmas):
-        scale = math.hypot(p[0, 0], p[1, 0])
-        # Clamped: an extreme scale would make the blur enormous (and slow) for nothing.
-        sigma_b = min(max(0.5, sigma_a / max(scale, 1e-6)), 8.0 * sigma_a)
-        sigma_b = round(sigma_b * 50) / 50  # 2 % steps, so that nearby scales share a field
-        fa, gxa, gya, ka = _cached(cache, ("a", sigma_a), lambda: _field(a, sigma_a))
-        fb, gxb, gyb, kb = _cached(cache, ("b", sigma_b), lambda: _field(b, sigma_b))
-        gmag = np.hypot(gxb, gyb)
-        ys, xs = np.nonzero((kb > 0.9) & (gmag > 0.01) & b.known)
-        if len(xs) < 20:
-            break
-        if len(xs) > max_points:
-            pick = np.sort(gen.choice(len(xs), max_points, replace=False))
-            xs, ys = xs[pick], ys[pick]
+    for level, (sigma_a, fa) in enumerate(zip(sigmas, factors)):
+        last = level == len(sigmas) - 1
+        sigma_b, fb = _b_level(sigma_a, fa, math.hypot(p[0, 0], p[1, 0]))
+        b_box = _whole(b)
+        if fa == 1 and fb == 1 and large:
+            # Full resolution on a huge map: b's cells near structure, found at half
+            # resolution, judged block by block from a pool the candidates share, and a's
+            # field on the box they can reach only.
+            cand = _level_points(b, cache, sigma_b, 2)
+            pool = _cached(cache, ("b pool", sigma_b, 2), dict)
+            xs, ys, target = _fine_points(a, b, p, cand[:2], 2, sigma_b, max_points, gen, pool)
+            if len(xs) < 20:
+                break
+            q = np.stack([xs, ys], axis=1) @ p[:2, :2].T + p[:2, 2]
+            a_box = _box_of(q, max_shift + 4.0 * sigma_a + 4.0, a.shape)
+            field = _a_field(a, a_box, 1, sigma_a)
+        else:
+            # Whole-map fields (at full or reduced resolution), shared by every candidate.
+            a_box = _whole(a)
+            field = _level_field(a, cache, sigma_a, fa)
+            xs, ys, target = _level_points(b, cache, sigma_b, fb)
+            if len(xs) < 20:
+                break
+            if len(xs) > max_points:
+                pick = np.sort(gen.choice(len(xs), max_points, replace=False))
+                xs, ys, target = xs[pick], ys[pick], target[pick]
         pts = np.stack([xs, ys], axis=1).astype(np.float64)
-        target = fb[ys, xs].astype(np.float64)
         npts = len(pts)
+        # This level's pixels: reduced pixels of a's and b's boxes.
+        to_a = np.linalg.inv(_scaling(fa, a_box[:2]))
+        from_b = _scaling(fb, b_box[:2])
+        shape_b = (b.shape[0] / fb, b.shape[1] / fb)
+
+        fld, gxa, gya, ka = field
 
         def residuals(params):
             q = pts @ params[:2, :2].T + params[:2, 2]
             valid = _sample(ka, q) > 0.9
-            r = _sample(fa, q).astype(np.float64) - target
+            r = _sample(fld, q).astype(np.float64) - target
             return q, r, valid
 
         def robust_rms(r, valid):
@@ -175,15 +467,22 @@ def refine_direct(
             rv = np.abs(r[valid])
             return float(np.sqrt(np.mean(np.minimum(rv, 3 * huber) ** 2)))
 
-        if level == len(sigmas) - 1:
-            _, r0, v0 = residuals(initial.params)
+        def to_level(m):
+            return to_a @ m @ from_b
+
+        def from_level(m):
+            return np.linalg.inv(to_a) @ m @ np.linalg.inv(from_b)
+
+        q_params = to_level(p)
+        if last:
+            _, r0, v0 = residuals(to_level(initial.params))
             rms_before = robust_rms(r0, v0)
         for _ in range(iterations):
-            q, r, valid = residuals(p)
+            q, r, valid = residuals(q_params)
             if valid.sum() < 20:
                 break
-            gx = _sample(gxa, q).astype(np.float64)[valid]
-            gy = _sample(gya, q).astype(np.float64)[valid]
+            gx = _sample(gxa, q[valid]).astype(np.float64)
+            gy = _sample(gya, q[valid]).astype(np.float64)
             rv = r[valid]
             px, py = pts[valid, 0], pts[valid, 1]
             # Parameters (sa, sb, tx, ty) of [[sa, -sb, tx], [sb, sa, ty]].
@@ -199,15 +498,16 @@ def refine_direct(
                 delta = -np.linalg.solve(h + 1e-9 * np.eye(4), g) / norm
             except np.linalg.LinAlgError:
                 break
-            sa, sb = p[0, 0] + delta[0], p[1, 0] + delta[1]
-            new = np.array([[sa, -sb, p[0, 2] + delta[2]], [sb, sa, p[1, 2] + delta[3]], [0.0, 0.0, 1.0]])
+            sa, sb = q_params[0, 0] + delta[0], q_params[1, 0] + delta[1]
+            new = np.array([[sa, -sb, q_params[0, 2] + delta[2]], [sb, sa, q_params[1, 2] + delta[3]], [0.0, 0.0, 1.0]])
             steps += 1
-            moved = _corner_shift(p, new, b.shape)
-            p = new
+            moved = _corner_shift(q_params, new, shape_b)
+            q_params = new
             if moved < 1e-3:
                 break
-        if level == len(sigmas) - 1:
-            _, r1, v1 = residuals(p)
+        p = from_level(q_params)
+        if last:
+            _, r1, v1 = residuals(q_params)
             rms_after = robust_rms(r1, v1)
     shift = _corner_shift(initial.params, p, b.shape)
     accepted = bool(
@@ -219,4 +519,7 @@ def refine_direct(
     report = RefineReport(accepted, steps, npts, shift, rms_before, rms_after)
     if not accepted:
         return initial, report
+    # Exactly a similarity again (the level changes of frame add rounding).
+    sa, sb = (p[0, 0] + p[1, 1]) / 2.0, (p[1, 0] - p[0, 1]) / 2.0
+    p = np.array([[sa, -sb, p[0, 2]], [sb, sa, p[1, 2]], [0.0, 0.0, 1.0]])
     return SimilarityTransform(p), report

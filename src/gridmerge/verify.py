@@ -26,13 +26,13 @@ Examples
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
 
-from .fuse import warp_values
 from .grid import FREE_THRESHOLD, OCCUPIED_THRESHOLD, OccupancyGrid
 from .transforms import AffineTransform
 
@@ -91,16 +91,24 @@ def despeckle(grid: OccupancyGrid) -> OccupancyGrid:
     they are not walls, and judging an alignment by them only adds noise. Returns ``grid``
     itself when there is none.
     """
-    occ = grid.occupied().astype(np.uint8)
+    occ = grid.occupied().view(np.uint8)
     if not occ.any():
         return grid
-    neighbours = cv2.filter2D(occ, cv2.CV_16S, np.ones((3, 3), np.float32), borderType=cv2.BORDER_CONSTANT) - occ
-    isolated = (occ == 1) & (neighbours == 0)
+    # Occupied cells in each 3 x 3 block (at most 9: bytes suffice); 1 means alone.
+    block = cv2.boxFilter(occ, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    isolated = (block == 1) & (occ == 1)
     if not isolated.any():
         return grid
     data = grid.data.copy()
     data[isolated] = 0.0
-    return grid.replace(data=data)
+    if data.dtype != np.float32:
+        return grid.replace(data=data)
+    # The values are the grid's own, some set to 0: valid as they are, so no second
+    # validation pass over a possibly huge map.
+    data.flags.writeable = False
+    out = copy.copy(grid)
+    object.__setattr__(out, "data", data)
+    return out
 
 
 def _near(mask: np.ndarray, tolerance: float) -> np.ndarray:
@@ -109,6 +117,35 @@ def _near(mask: np.ndarray, tolerance: float) -> np.ndarray:
         return np.zeros_like(mask)
     dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3)
     return dist <= tolerance
+
+
+def _footprint(params: np.ndarray, shape_b, shape_a) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)``: the box of a's pixels that b's image (``shape_b``) can cover
+    when moved by ``params`` (b pixels -> a pixels), clipped to a (``shape_a``)."""
+    hb, wb = shape_b
+    ha, wa = shape_a
+    c = np.array([[-0.5, -0.5], [wb - 0.5, -0.5], [wb - 0.5, hb - 0.5], [-0.5, hb - 0.5]])
+    q = c @ np.asarray(params, dtype=float)[:2, :2].T + np.asarray(params, dtype=float)[:2, 2]
+    if not np.isfinite(q).all():
+        return 0, 0, wa, ha
+    lo = np.floor(q.min(0)) - 2
+    hi = np.ceil(q.max(0)) + 3
+    x0, y0 = int(min(max(lo[0], 0), wa)), int(min(max(lo[1], 0), ha))
+    x1, y1 = int(min(max(hi[0], x0), wa)), int(min(max(hi[1], y0), ha))
+    return x0, y0, x1, y1
+
+
+def _warp_nearest(data: np.ndarray, matrix: np.ndarray, shape) -> np.ndarray:
+    """``warp_values(data, matrix, shape, interpolation="nearest")``, in one warp: the
+    nearest cell's value is copied as it is, NaN (unknown) included."""
+    h, w = int(shape[0]), int(shape[1])
+    if h == 0 or w == 0:
+        return np.full((h, w), np.nan, np.float32)
+    src = np.asarray(data, dtype=np.float32)
+    return cv2.warpAffine(
+        src, np.asarray(matrix, dtype=float)[:2], (w, h), flags=cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"),
+    )
 
 
 def verify(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, tolerance: float = 2.0) -> Verification:
@@ -121,15 +158,21 @@ def verify(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, to
     tolerance : float
         Distance (a's cells) within which two walls count as the same wall.
     """
-    warped = warp_values(b.data, transform.params, a.shape, interpolation="nearest")
-    both = a.known & ~np.isnan(warped)
+    # Only the part of a that b's image covers can overlap: work on that box.
+    x0, y0, x1, y1 = _footprint(transform.params, b.shape, a.shape)
+    shifted = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ transform.params
+    sub = a.data[y0:y1, x0:x1]
+    warped = _warp_nearest(b.data, shifted, sub.shape)
+    both = ~np.isnan(sub) & ~np.isnan(warped)
     overlap = int(np.count_nonzero(both))
-    pa = np.where(both, a.data, np.nan)
-    pb = np.where(both, warped, np.nan)
-    index, agr, dis = acceptance_index(pa, pb)
+    # Birk & Carpin's counts and the walls, over the cells both know.
     with np.errstate(invalid="ignore"):
-        wa = pa > OCCUPIED_THRESHOLD
-        wb = pb > OCCUPIED_THRESHOLD
+        ao, af = (sub > OCCUPIED_THRESHOLD) & both, (sub < FREE_THRESHOLD) & both
+        bo, bf = (warped > OCCUPIED_THRESHOLD) & both, (warped < FREE_THRESHOLD) & both
+    agr = int(np.count_nonzero(ao & bo) + np.count_nonzero(af & bf))
+    dis = int(np.count_nonzero(ao & bf) + np.count_nonzero(af & bo))
+    index = agr / (agr + dis) if agr + dis else math.nan
+    wa, wb = ao, bo
     shares = []
     if wa.any() and wb.any():
         shares.append(np.count_nonzero(wa & _near(wb, tolerance)) / np.count_nonzero(wa))
@@ -188,49 +231,62 @@ class WallScorer:
     def __init__(self, a: OccupancyGrid, b: OccupancyGrid, *, tolerance: float = 2.0, max_points: int = 20000):
         self.tolerance = float(tolerance)
         self._maps = []
-        self._free = []
         for g in (a, b):
             walls = g.occupied()
-            self._free.append(g.free())
+            known = g.known
+            # One byte per cell: 1 known, 2 free.
+            code = known.astype(np.uint8)
+            code[g.free()] |= 2
             dist = cv2.distanceTransform((~walls).astype(np.uint8), cv2.DIST_L2, 3) if walls.any() else np.full(g.shape, np.inf, np.float32)
-            ys, xs = np.nonzero(walls)
-            step = max(1, len(xs) // max_points)
-            ky, kx = np.nonzero(g.known)
-            kstep = max(1, len(kx) // max_points)
-            self._maps.append(
-                (
-                    g.known,
-                    dist,
-                    np.stack([xs[::step], ys[::step]], 1).astype(float),
-                    np.stack([kx[::kstep], ky[::kstep]], 1).astype(float),
-                )
-            )
+            self._maps.append((g.shape, code.ravel(), dist.ravel(), _strided_cells(walls, max_points), _strided_cells(known, max_points)))
 
     @staticmethod
-    def _lookup(points: np.ndarray, known: np.ndarray, dist: np.ndarray, tol: float, free: np.ndarray | None = None):
-        h, w = known.shape
+    def _lookup(points: np.ndarray, shape, code: np.ndarray, dist: np.ndarray | None, tol: float):
+        """``(on known, near a wall among those, on free away from walls)`` counts."""
+        h, w = shape
         p = np.rint(points).astype(np.int64)
         inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
-        p = p[inside]
-        on_known = known[p[:, 1], p[:, 0]]
-        d = dist[p[:, 1], p[:, 0]]
-        near = d[on_known] <= tol
-        if free is None:
-            return int(on_known.sum()), int(near.sum())
-        conflict = int(np.count_nonzero(free[p[:, 1], p[:, 0]] & (d > tol)))
-        return int(on_known.sum()), int(near.sum()), conflict
+        flat = p[inside, 1] * w + p[inside, 0]
+        c = code.take(flat)
+        on_known = (c & 1).astype(bool)
+        if dist is None:
+            return int(np.count_nonzero(on_known)), 0, 0
+        d = dist.take(flat)
+        near = d <= tol
+        good = int(np.count_nonzero(on_known & near))
+        conflict = int(np.count_nonzero((c & 2).astype(bool) & ~near))
+        return int(np.count_nonzero(on_known)), good, conflict
 
     def __call__(self, transform: AffineTransform) -> QuickScore:
-        (ka, da, wa, pa), (kb, db, wb, pb) = self._maps
+        (sa, ca, da, wa, pa), (sb, cb, db, wb, pb) = self._maps
         inv = np.linalg.inv(transform.params)
         scale = math.sqrt(abs(float(np.linalg.det(transform.params[:2, :2])))) or 1.0
-        fa, fb = self._free
-        n_ab, good_ab, bad_ab = self._lookup(wb @ transform.params[:2, :2].T + transform.params[:2, 2], ka, da, self.tolerance, fa)
-        n_ba, good_ba, bad_ba = self._lookup(wa @ inv[:2, :2].T + inv[:2, 2], kb, db, self.tolerance / scale, fb)
+        n_ab, good_ab, bad_ab = self._lookup(wb @ transform.params[:2, :2].T + transform.params[:2, 2], sa, ca, da, self.tolerance)
+        n_ba, good_ba, bad_ba = self._lookup(wa @ inv[:2, :2].T + inv[:2, 2], sb, cb, db, self.tolerance / scale)
         shares = [g / n for g, n in ((good_ab, n_ab), (good_ba, n_ba)) if n > 0]
         wall = float(np.mean(shares)) if shares else 0.0
         cons = [g / (g + c) for g, c in ((good_ab, bad_ab), (good_ba, bad_ba)) if g + c > 0]
         consistency = float(np.mean(cons)) if cons else 0.0
-        landed, _ = self._lookup(pb @ transform.params[:2, :2].T + transform.params[:2, 2], ka, np.zeros_like(da), 0.0)
+        landed, _, _ = self._lookup(pb @ transform.params[:2, :2].T + transform.params[:2, 2], sa, ca, None, 0.0)
         overlap = landed / len(pb) if len(pb) else 0.0
         return QuickScore(wall, overlap, n_ab + n_ba, consistency)
+
+
+def _strided_cells(mask: np.ndarray, max_points: int) -> np.ndarray:
+    """``(K, 2)`` float ``(x, y)`` of every ``step``-th True cell of ``mask`` in row-major
+    order, ``step = max(1, count // max_points)`` (as ``np.nonzero(mask)[::step]``, in
+    row blocks so that a huge mask needs no index array of its size)."""
+    h, w = mask.shape
+    count = int(np.count_nonzero(mask))
+    step = max(1, count // max(1, int(max_points)))
+    out = []
+    seen = 0
+    rows = max(1, (1 << 20) // max(1, w))
+    flat = mask.reshape(-1) if mask.flags.c_contiguous else np.ascontiguousarray(mask).reshape(-1)
+    for r0 in range(0, h, rows):
+        idx = np.flatnonzero(flat[r0 * w : min(h, r0 + rows) * w])
+        first = (-seen) % step  # the block's first index whose global rank is a multiple of step
+        out.append(idx[first::step] + r0 * w)
+        seen += len(idx)
+    idx = np.concatenate(out) if out else np.zeros(0, np.int64)
+    return np.stack([idx % w, idx // w], axis=1).astype(float)

@@ -1,0 +1,140 @@
+"""Coarse-to-fine refinement against the maps (gridmerge.refine)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from gridmerge import OccupancyGrid, samples
+from gridmerge import refine as refine_mod
+from gridmerge.refine import _a_field, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
+from gridmerge.transforms import SimilarityTransform, corner_error
+
+
+@pytest.fixture(scope="module")
+def robots():
+    a, b, truth = samples.robot_pair(0)
+    return a, b, SimilarityTransform(truth)
+
+
+def _perturbed(truth: SimilarityTransform, seed: int) -> SimilarityTransform:
+    # 2-5 px off at b's corners: what the candidates of align typically are.
+    rng = np.random.default_rng(seed)
+    sign = rng.choice([-1.0, 1.0], 4)
+    return SimilarityTransform(
+        rotation=truth.rotation + sign[0] * 0.003,
+        scale=truth.scale * (1 + sign[1] * 0.002),
+        translation=truth.translation + sign[2:] * 2.0,
+    )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_coarse_to_fine_reaches_sub_pixel_accuracy(robots, seed):
+    a, b, truth = robots
+    start = _perturbed(truth, seed)
+    assert corner_error(start, truth, b.shape) > 2.0
+    refined, report = refine_direct(a, b, start, rng=seed, cache={})
+    assert report.accepted and report.points > 1000
+    assert corner_error(refined, truth, b.shape) < 0.5
+    assert isinstance(refined, SimilarityTransform)
+
+
+def test_large_maps_refine_coarse_to_fine_as_precisely(robots, monkeypatch):
+    # Maps above LARGE_CELLS run the smoothest levels at half resolution and judge b's
+    # cells block by block from a random pool at full resolution; force that path on the
+    # small pair and check that nothing is lost.
+    a, b, truth = robots
+    start = _perturbed(truth, 5)
+    whole, _ = refine_direct(a, b, start, rng=0, cache={})
+    monkeypatch.setattr(refine_mod, "LARGE_CELLS", 0)
+    cache: dict = {}
+    coarse, report = refine_direct(a, b, start, rng=0, cache=cache)
+    assert report.accepted
+    assert corner_error(coarse, truth, b.shape) < 0.5
+    assert corner_error(coarse, whole, b.shape) < 0.3
+    assert any(k[0] == "a" and k[2] == 2 for k in cache if isinstance(k, tuple) and len(k) == 3)
+    # A second candidate reuses the cells judged for the first.
+    pool = next(v for k, v in cache.items() if k[0] == "b pool")
+    judged = len(pool["chunks"])
+    again, _ = refine_direct(a, b, _perturbed(truth, 6), rng=0, cache=cache)
+    assert len(pool["chunks"]) <= judged + 1
+    assert corner_error(again, truth, b.shape) < 0.5
+
+
+def test_prepared_fields_are_those_refinement_uses(robots):
+    a, b, truth = robots
+    start = _perturbed(truth, 2)
+    cache = prepare_fields(a, b, {}, scale=truth.scale)
+    keys = set(cache)
+    prepared, _ = refine_direct(a, b, start, rng=1, cache=cache)
+    assert set(cache) == keys  # nothing left to compute
+    fresh, _ = refine_direct(a, b, start, rng=1, cache={})
+    np.testing.assert_array_equal(prepared.params, fresh.params)
+
+
+def test_shared_cache_gives_the_same_result(robots):
+    a, b, truth = robots
+    start = _perturbed(truth, 3)
+    alone, _ = refine_direct(a, b, start, rng=4)
+    cache: dict = {}
+    refine_direct(a, b, _perturbed(truth, 9), rng=4, cache=cache)
+    shared, _ = refine_direct(a, b, start, rng=4, cache=cache)
+    assert corner_error(alone, shared, b.shape) < 0.1
+
+
+def test_every_level_at_full_resolution_still_works(robots):
+    a, b, truth = robots
+    refined, report = refine_direct(a, b, _perturbed(truth, 1), factors=(1, 1, 1))
+    assert report.accepted and corner_error(refined, truth, b.shape) < 0.5
+    with pytest.raises(ValueError):
+        refine_direct(a, b, truth, sigmas=(3.0, 1.0), factors=(2,))
+
+
+def test_refinement_never_moves_farther_than_max_shift(robots):
+    a, b, truth = robots
+    far = SimilarityTransform(rotation=truth.rotation + 0.05, scale=truth.scale, translation=truth.translation + 15)
+    out, report = refine_direct(a, b, far, max_shift=3.0)
+    assert (out is far) == (not report.accepted)
+    assert corner_error(out, far, b.shape) <= 3.0 + 1e-9
+
+
+def test_block_fields_equal_the_dense_fields():
+    rng = np.random.default_rng(0)
+    d = rng.random((120, 140)).astype(np.float32)
+    d[rng.random(d.shape) < 0.3] = np.nan
+    d[40:44, :] = 1.0
+    grid = OccupancyGrid(d)
+    for sigma in (1.0, 1.7):
+        k, v = _planes(grid, _whole(grid), 1)
+        f, gx, gy, sk = _smoothed(k, v, sigma)
+        for c in (1, 2, 3):
+            bx = rng.integers(0, 140 // c, 400)
+            by = rng.integers(0, 120 // c, 400)
+            x, y, F, GX, GY, SK, KN = _block_fields(grid.data, bx, by, c, sigma)
+            assert len(x) > 100
+            np.testing.assert_allclose(F, f[y, x], atol=1e-5)
+            np.testing.assert_allclose(GX, gx[y, x], atol=1e-5)
+            np.testing.assert_allclose(GY, gy[y, x], atol=1e-5)
+            np.testing.assert_allclose(SK, sk[y, x], atol=1e-5)
+            assert (KN == ~np.isnan(grid.data[y, x])).all()
+
+
+def test_half_resolution_fields_sample_the_full_resolution_ones():
+    # Reduced cell (x, y) is cell (2x, 2y); the prefilter and the smaller blur together
+    # smooth as much as the full-resolution blur.
+    a, _, _ = samples.robot_pair(1)
+    full = _a_field(a, _whole(a), 1, 3.0)
+    half = _a_field(a, _whole(a), 2, 3.0)
+    h, w = half[0].shape
+    assert (h, w) == ((a.height + 1) // 2, (a.width + 1) // 2)
+    inside = full[3][::2, ::2] > 0.99  # well inside the known area
+    for f, g, per_cell in zip(full[:3], half[:3], (1.0, 2.0, 2.0)):  # gradients per reduced cell
+        diff = np.abs(f[::2, ::2] - g / per_cell)[inside]
+        assert np.percentile(diff, 99) < 0.03 * max(1e-6, np.abs(f).max())
+
+
+def test_huge_maps_keep_the_initial_estimate():
+    a = OccupancyGrid(np.zeros((2, 40000), np.float32))
+    t = SimilarityTransform(rotation=0.1)
+    out, report = refine_direct(a, a, t)
+    assert out is t and not report.accepted and math.isnan(report.rms_after)
