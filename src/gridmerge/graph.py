@@ -191,18 +191,22 @@ def optimize_poses(
     ``w_e = confidence``: linear least squares; maps outside ``placed`` stay ``None``.
 
     With ``robust`` (pixels), the weights are re-estimated ``iterations`` times as
-    ``confidence / (1 + (r_e / robust)^2)`` from each edge's RMS disagreement ``r_e``
-    (Cauchy's loss): one alignment that is off (a small overlap leaves a slightly wrong
-    rotation looking right) then stops pulling every map towards it, and shows its
-    disagreement in full.
+    ``confidence / (1 + (r_e / c)^2)`` from each edge's RMS disagreement ``r_e`` (Cauchy's
+    loss), with the scale ``c = max(robust, 3.5 x the median r_e)`` of the plain solution:
+    one alignment that is off (a small overlap leaves a slightly wrong rotation looking
+    right) then stops pulling every map towards it and shows its disagreement in full,
+    while maps that all bend a little against each other (real maps do; their median
+    disagreement is several pixels) keep their plain least-squares compromise.
     """
     weights = [max(e.confidence, 1e-6) for e in edges]
     poses = _solve_linear(n, edges, placed, reference, shapes, weights)
     if robust is None or robust <= 0:
         return poses
+    first = edge_residuals(edges, poses, shapes)
+    scale = max(float(robust), 3.5 * float(np.median(list(first.values())))) if first else float(robust)
     for _ in range(iterations):
         res = edge_residuals(edges, poses, shapes)
-        new = [max(e.confidence, 1e-6) / (1.0 + (res.get((e.i, e.j), 0.0) / robust) ** 2) for e in edges]
+        new = [max(e.confidence, 1e-6) / (1.0 + (res.get((e.i, e.j), 0.0) / scale) ** 2) for e in edges]
         if np.allclose(new, weights, rtol=1e-3, atol=1e-9):
             break
         weights = new
