@@ -97,11 +97,7 @@ def plot_merge(
             sub = f": rotation {np.degrees(t.rotation):.2f} deg, scale {t.scale:.4f}, translation ({t.translation[0]:.1f}, {t.translation[1]:.1f}) px"
         ax.set_title("merged map" + sub, fontsize=9)
         ax.set_axis_off()
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
-    plt.close(fig)
-    return buf.getvalue()
+    return _png(plt, fig, dpi)
 
 
 def plot_fleet(result, *, dpi: int = 110, max_thumbnails: int = 16) -> bytes:
@@ -152,6 +148,11 @@ def plot_fleet(result, *, dpi: int = 110, max_thumbnails: int = 16) -> bytes:
     else:
         ax.text(0.5, 0.5, f"not merged: {result.message}", ha="center", va="center", wrap=True)
     ax.set_axis_off()
+    return _png(plt, fig, dpi)
+
+
+def _png(plt, fig, dpi: int) -> bytes:
+    """The figure as PNG bytes; the figure is closed."""
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
