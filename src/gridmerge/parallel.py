@@ -77,7 +77,9 @@ class ProcessExecutor(_Closing):
         Number of processes; default ``os.cpu_count()``.
     start_method : {"spawn", "forkserver", "fork"}
         How workers start. ``"spawn"`` (default) is safe with OpenCV's threads; workers
-        import gridmerge once, which costs about a second.
+        import gridmerge once, which costs about a second, and run OpenCV single-threaded
+        (the pool is the parallelism). As with any spawned pool, the main program must be
+        importable (a script or module, guarded by ``if __name__ == "__main__":``).
     """
 
     def __init__(self, workers: int | None = None, start_method: str = "spawn"):
@@ -85,7 +87,9 @@ class ProcessExecutor(_Closing):
         if n < 1:
             raise GridMergeError(f"workers must be at least 1, got {workers}")
         self.workers = n
-        self._pool = ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context(start_method))
+        self._pool = ProcessPoolExecutor(
+            max_workers=n, mp_context=multiprocessing.get_context(start_method), initializer=_one_opencv_thread
+        )
 
     def map(self, fn: Callable[[Any], Any], items: Iterable[Any]) -> list:
         items = list(items)
@@ -98,6 +102,13 @@ class ProcessExecutor(_Closing):
 
     def __repr__(self) -> str:
         return f"ProcessExecutor(workers={self.workers})"
+
+
+def _one_opencv_thread() -> None:
+    """In a pool worker: OpenCV's own threads would only compete with the other workers."""
+    import cv2
+
+    cv2.setNumThreads(1)
 
 
 class DaskExecutor(_Closing):

@@ -215,3 +215,21 @@ def test_nothing_to_merge_writes_nothing(fleet_dir, capsys, tmp_path):
     code, out, err = _run(capsys, "merge", *inputs, "-o", tmp_path / "m.yaml", "--out-bag", tmp_path / "b.bag")
     assert code == 1 and "not merged" in out
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_corrupt_bag_is_one_line_and_nothing_is_written(fleet_dir, capsys, tmp_path):
+    bad = tmp_path / "broken.bag"
+    bad.write_bytes((fleet_dir / "fleet.bag").read_bytes()[:5000])  # truncated recording
+    code, out, err = _run(capsys, "merge", bad, fleet_dir / "robot1.yaml", "-o", tmp_path / "m.yaml")
+    assert code == 2 and "broken.bag" in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.bag"]
+
+
+def test_bags_and_map_files_mix(fleet_dir, capsys, tmp_path):
+    robot1 = load_map(fleet_dir / "robot1.yaml")
+    write_map_messages(tmp_path / "one.bag", [("/robot6/map", load_map(fleet_dir / "robot6.yaml"), 1)], format="ros1")
+    code, out, err = _run(capsys, "merge", fleet_dir / "robot1.yaml", tmp_path / "one.bag", "-o", tmp_path / "m.yaml", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert [e["name"] for e in d["maps"]] == [str(fleet_dir / "robot1.yaml"), "/robot6/map"]
+    assert all(e["placed"] for e in d["maps"]) and d["merged"]["resolution"] == pytest.approx(robot1.resolution)
