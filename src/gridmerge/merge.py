@@ -349,6 +349,22 @@ def _run_features(job: _FeatureJob) -> Features | None:
 
 
 @dataclass(frozen=True)
+class _Prior:
+    """A pose of a pair known without a search, to be re-verified (:func:`reverify`).
+
+    ``transform``: b's pixels -> a's; ``runner_up_ratio`` and ``confidence``: the
+    ambiguity and confidence it carries; ``predicted``: it comes from the other maps'
+    placement (a failure is then final), not from this pair's own earlier alignment
+    (a failure then calls for a new search).
+    """
+
+    transform: AffineTransform
+    runner_up_ratio: float = 1.0
+    confidence: float = 1.0
+    predicted: bool = False
+
+
+@dataclass(frozen=True)
 class _PairJob:
     a: OccupancyGrid
     b: OccupancyGrid
@@ -356,16 +372,14 @@ class _PairJob:
     options: AlignOptions
     seed: int
     features: tuple
-    prior: AffineTransform | None = None
-    prior_ratio: float = 1.0
-    prior_confidence: float = 1.0
+    prior: _Prior | None = None
 
 
 def _run_pair(job: _PairJob) -> AlignResult:
-    if job.prior is not None:
-        r = reverify(job.a, job.b, job.prior, method=job.method, options=job.options, rng=job.seed,
-                     runner_up_ratio=job.prior_ratio, max_confidence=job.prior_confidence)
-        return r
+    p = job.prior
+    if p is not None:
+        return reverify(job.a, job.b, p.transform, method=job.method, options=job.options, rng=job.seed,
+                        runner_up_ratio=p.runner_up_ratio, max_confidence=p.confidence)
     return align(job.a, job.b, method=job.method, options=job.options, rng=job.seed, features=job.features)
 
 
@@ -736,7 +750,7 @@ class Merger:
         stats.features_computed += len(todo)
         return [self._features[n][1] for n in names]
 
-    def _prior(self, key: tuple[str, str]) -> tuple[AffineTransform, float, float] | None:
+    def _prior(self, key: tuple[str, str]) -> _Prior | None:
         """The cached transform of a pair, carried into the maps' current pixel frames."""
         entry = self._pairs.get(key)
         if entry is None:
@@ -748,9 +762,9 @@ class Merger:
         gi_new, gj_new = self._maps[ni], self._maps[nj]
         m = gi_new.metric_to_pixel_matrix() @ gi.pixel_to_metric_matrix() @ r.transform.params @ gj.metric_to_pixel_matrix() @ gj_new.pixel_to_metric_matrix()
         ratio = float(r.details.get("runner_up_ratio", 1.0)) if r.details else 1.0
-        return type(r.transform)(m), ratio, float(r.confidence)
+        return _Prior(type(r.transform)(m), ratio, float(r.confidence))
 
-    def _placed_guess(self, ni: str, nj: str):
+    def _placed_guess(self, ni: str, nj: str) -> _Prior | None:
         """The transform of ``nj`` onto ``ni`` that the last merge's placement implies
         (carried into the maps' current pixel frames), or ``None``."""
         if ni not in self._poses or nj not in self._poses:
@@ -760,11 +774,11 @@ class Merger:
         mi = pi @ gi.metric_to_pixel_matrix() @ now_i.pixel_to_metric_matrix()
         mj = pj @ gj.metric_to_pixel_matrix() @ now_j.pixel_to_metric_matrix()
         t = AffineTransform(np.linalg.solve(mi, mj))
-        return t, 0.0, min(self._pose_conf.get(ni, 0.0), self._pose_conf.get(nj, 0.0)), "placed"
+        return _Prior(t, 0.0, min(self._pose_conf.get(ni, 0.0), self._pose_conf.get(nj, 0.0)), predicted=True)
 
-    def _job(self, i, j, names, feats, prior=None, ratio=1.0, conf=1.0, _why=None) -> _PairJob:
+    def _job(self, i, j, names, feats, prior: _Prior | None = None) -> _PairJob:
         return _PairJob(self._maps[names[i]], self._maps[names[j]], self.method, self.options,
-                        _pair_seed(self._seed, names[i], names[j]), (feats[i], feats[j]), prior, ratio, conf)
+                        _pair_seed(self._seed, names[i], names[j]), (feats[i], feats[j]), prior)
 
     def _store(self, names, i, j, r: AlignResult, how: str) -> PairResult:
         r = _finite_result(r)
@@ -803,7 +817,7 @@ class Merger:
                     recheck.append((i, j, prior))
                 elif verified and (guess := self._placed_guess(names[i], names[j])) is not None:
                     # Failed before, but both maps were placed: their poses say where to look.
-                    if _predicted_overlap(maps[i], maps[j], guess[0]) >= 4 * self.options.min_overlap_cells:
+                    if _predicted_overlap(maps[i], maps[j], guess.transform) >= 4 * self.options.min_overlap_cells:
                         recheck.append((i, j, guess))
                     else:
                         kept = replace(r, details={**r.details, "predicted": True})
@@ -811,12 +825,12 @@ class Merger:
                 else:
                     search.append((i, j))
         if recheck:
-            jobs = [self._job(i, j, names, feats, *prior) for i, j, prior in recheck]
+            jobs = [self._job(i, j, names, feats, prior) for i, j, prior in recheck]
             t1 = time.perf_counter()
             for (i, j, prior), r in zip(recheck, self._run("pairs", _run_pair, jobs)):
                 if r.success:
                     results[(i, j)] = self._store(names, i, j, r, "reverify")
-                elif len(prior) == 4:  # a predicted pose that does not hold: not searched again
+                elif prior.predicted:  # a predicted pose that does not hold: not searched again
                     r.details["predicted"] = True
                     results[(i, j)] = self._store(names, i, j, r, "predict")
                 else:
@@ -868,9 +882,9 @@ class Merger:
                     if _predicted_overlap(maps[i], maps[j], t) < max(4 * self.options.min_overlap_cells, 1):
                         continue
                     conf = min(_chain_confidence(report, i), _chain_confidence(report, j))
-                    predicted.append((i, j, (t, 0.0, conf)))
+                    predicted.append((i, j, _Prior(t, 0.0, conf, predicted=True)))
             if predicted:
-                jobs = [self._job(i, j, names, feats, *prior) for i, j, prior in predicted]
+                jobs = [self._job(i, j, names, feats, prior) for i, j, prior in predicted]
                 t1 = time.perf_counter()
                 for (i, j, _), r in zip(predicted, self._run("pairs", _run_pair, jobs)):
                     r.details["predicted"] = True
