@@ -734,18 +734,10 @@ def align(
         fa, fb = _extract_both(ext, spec.extractor(opts), a, b)
     fa = fa if fa is not None else (ext(a) if ext is not None else Features.empty())
     fb = fb if fb is not None else (ext(b) if ext is not None else Features.empty())
-    # Work on the known part of each map only: real maps are often mostly unknown.
-    ca, oa = a.crop_known(_CROP_MARGIN)
-    cb, ob = b.crop_known(_CROP_MARGIN)
-    if spec.verified:
-        # Our methods judge alignments by walls: isolated hits are not walls.
-        ca, cb = despeckle(ca), despeckle(cb)
+    ca, oa, cb, ob = working_maps(a, b, despeckled=spec.verified)
     est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen)
     if est.transform is not None:
-        # Back from the crops' pixels to the whole maps' pixels.
-        to_full_a = SimilarityTransform(translation=oa)
-        from_full_b = SimilarityTransform(translation=-ob)
-        est.transform = type(est.transform)((to_full_a @ est.transform @ from_full_b).params)
+        est.transform = crop_to_full(est.transform, oa, ob)
         est.src = est.src + ob
         est.dst = est.dst + oa
     n_inl = int(est.inliers.sum())
@@ -810,6 +802,31 @@ def _extract_both(ext_a: FeatureExtractor, ext_b: FeatureExtractor, a: Occupancy
         job = pool.submit(ext_b, b)
         fa = ext_a(a)
         return fa, job.result()
+
+
+def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True):
+    """The maps as the verified methods judge them: ``(ca, oa, cb, ob)``.
+
+    Each map cut to its known cells (plus a margin: real maps are mostly unknown), with
+    the cut's pixel offset, and with isolated hits freed when ``despeckled`` (they are
+    not walls). Map transforms between the cuts back with :func:`crop_to_full`.
+    """
+    ca, oa = a.crop_known(_CROP_MARGIN)
+    cb, ob = b.crop_known(_CROP_MARGIN)
+    if despeckled:
+        ca, cb = despeckle(ca), despeckle(cb)
+    return ca, oa, cb, ob
+
+
+def crop_to_full(t: AffineTransform, oa: np.ndarray, ob: np.ndarray) -> AffineTransform:
+    """``t`` between the cuts of :func:`working_maps` (b's cut -> a's cut) as a transform
+    between the whole maps' pixels, of the same kind."""
+    return type(t)((SimilarityTransform(translation=oa) @ t @ SimilarityTransform(translation=-ob)).params)
+
+
+def full_to_crop(t: AffineTransform, oa: np.ndarray, ob: np.ndarray) -> AffineTransform:
+    """The inverse operation of :func:`crop_to_full`."""
+    return type(t)((SimilarityTransform(translation=-oa) @ t @ SimilarityTransform(translation=ob)).params)
 
 
 def _shifted(f: Features, offset: np.ndarray) -> Features:

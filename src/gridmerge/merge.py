@@ -40,7 +40,17 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .align import METHODS, AlignOptions, AlignResult, _decline_reason, _structural_confidence, align
+from .align import (
+    METHODS,
+    AlignOptions,
+    AlignResult,
+    _decline_reason,
+    _structural_confidence,
+    align,
+    crop_to_full,
+    full_to_crop,
+    working_maps,
+)
 from .errors import GridMergeError
 from .features import Features
 from .fuse import FUSION_RULES, fuse_values, warp_values
@@ -51,7 +61,7 @@ from .matching import match_snn
 from .parallel import Executor, SerialExecutor
 from .refine import refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
-from .verify import despeckle, verify
+from .verify import verify
 
 __all__ = [
     "MergeResult",
@@ -365,6 +375,25 @@ class _Prior:
 
 
 @dataclass(frozen=True)
+class _PairState:
+    """What :class:`Merger` remembers of a pair: its alignment, and the versions and
+    grids of the two maps it was made with (``result.transform``: grid_j's pixels ->
+    grid_i's)."""
+
+    version_i: int
+    version_j: int
+    grid_i: OccupancyGrid
+    grid_j: OccupancyGrid
+    result: AlignResult
+
+
+def _carry(old: OccupancyGrid, new: OccupancyGrid) -> np.ndarray:
+    """(3, 3) float array: a newer version's pixels -> the older version's pixels of one
+    map, through their shared metric frame (a growing map's origin moves, its frame not)."""
+    return old.metric_to_pixel_matrix() @ new.pixel_to_metric_matrix()
+
+
+@dataclass(frozen=True)
 class _PairJob:
     a: OccupancyGrid
     b: OccupancyGrid
@@ -437,10 +466,8 @@ def reverify(
     opts = options or AlignOptions()
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     t0 = time.perf_counter()
-    ca, oa = a.crop_known(8)
-    cb, ob = b.crop_known(8)
-    ca, cb = despeckle(ca), despeckle(cb)
-    t = SimilarityTransform(translation=-oa) @ prior @ SimilarityTransform(translation=ob)
+    ca, oa, cb, ob = working_maps(a, b)
+    t = full_to_crop(prior, oa, ob)
     if not isinstance(t, SimilarityTransform):
         t = SimilarityTransform.from_estimate(cb.corners(), t(cb.corners())) or SimilarityTransform(t.params)
     shift = 0.0
@@ -452,8 +479,7 @@ def reverify(
     wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
     conf = min(float(max_confidence), _structural_confidence(wall, runner_up_ratio))
     message = _decline_reason(0, v, conf, opts, need_inliers=False)
-    full = SimilarityTransform(translation=oa) @ t @ SimilarityTransform(translation=-ob)
-    full = SimilarityTransform(full.params)
+    full = crop_to_full(t, oa, ob)
     ok = not message
     return AlignResult(
         success=ok,
@@ -530,8 +556,7 @@ def _box_points(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform) -> np.nd
 
 def _predicted_overlap(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, step: int = 4) -> int:
     """Cells (of a) known in both maps when b is moved by ``t``, counted on a coarse grid."""
-    ba = a.known_bounds()
-    if ba is None or _box_points(a, b, t) is None:
+    if _box_points(a, b, t) is None:  # the known boxes miss each other
         return 0
     ka = a.known[:: step, :: step]
     ys, xs = np.nonzero(ka)
@@ -674,9 +699,7 @@ class Merger:
         self._digests: dict[str, bytes] = {}
         self._versions: dict[str, int] = {}
         self._features: dict[str, tuple[int, Features | None]] = {}
-        # (name_i, name_j) -> (version_i, version_j, grid_i, grid_j, AlignResult, how)
-        self._pairs: dict[tuple[str, str], tuple] = {}
-        self._last: MergeResult | None = None
+        self._pairs: dict[tuple[str, str], _PairState] = {}
         # name -> (grid, 3x3 pose: its pixels -> the merged map's metric frame) of the last merge.
         self._poses: dict[str, tuple[OccupancyGrid, np.ndarray]] = {}
         self._pose_conf: dict[str, float] = {}
@@ -753,14 +776,11 @@ class Merger:
     def _prior(self, key: tuple[str, str]) -> _Prior | None:
         """The cached transform of a pair, carried into the maps' current pixel frames."""
         entry = self._pairs.get(key)
-        if entry is None:
+        if entry is None or not entry.result.success:
             return None
-        _, _, gi, gj, r, _ = entry
-        if not r.success:
-            return None
+        r = entry.result
         ni, nj = key
-        gi_new, gj_new = self._maps[ni], self._maps[nj]
-        m = gi_new.metric_to_pixel_matrix() @ gi.pixel_to_metric_matrix() @ r.transform.params @ gj.metric_to_pixel_matrix() @ gj_new.pixel_to_metric_matrix()
+        m = np.linalg.solve(_carry(entry.grid_i, self._maps[ni]), r.transform.params @ _carry(entry.grid_j, self._maps[nj]))
         ratio = float(r.details.get("runner_up_ratio", 1.0)) if r.details else 1.0
         return _Prior(type(r.transform)(m), ratio, float(r.confidence))
 
@@ -770,9 +790,8 @@ class Merger:
         if ni not in self._poses or nj not in self._poses:
             return None
         (gi, pi), (gj, pj) = self._poses[ni], self._poses[nj]
-        now_i, now_j = self._maps[ni], self._maps[nj]
-        mi = pi @ gi.metric_to_pixel_matrix() @ now_i.pixel_to_metric_matrix()
-        mj = pj @ gj.metric_to_pixel_matrix() @ now_j.pixel_to_metric_matrix()
+        mi = pi @ _carry(gi, self._maps[ni])
+        mj = pj @ _carry(gj, self._maps[nj])
         t = AffineTransform(np.linalg.solve(mi, mj))
         return _Prior(t, 0.0, min(self._pose_conf.get(ni, 0.0), self._pose_conf.get(nj, 0.0)), predicted=True)
 
@@ -783,7 +802,7 @@ class Merger:
     def _store(self, names, i, j, r: AlignResult, how: str) -> PairResult:
         r = _finite_result(r)
         ni, nj = names[i], names[j]
-        self._pairs[(ni, nj)] = (self._versions[ni], self._versions[nj], self._maps[ni], self._maps[nj], r, how)
+        self._pairs[(ni, nj)] = _PairState(self._versions[ni], self._versions[nj], self._maps[ni], self._maps[nj], r)
         return PairResult(i, j, r, how)
 
     # ---------------------------------------------------------------- merge
@@ -809,8 +828,8 @@ class Merger:
                 entry = self._pairs.get((names[i], names[j]))
                 if entry is None:
                     continue
-                vi, vj, _, _, r, how = entry
-                if (vi, vj) == (self._versions[names[i]], self._versions[names[j]]):
+                r = entry.result
+                if (entry.version_i, entry.version_j) == (self._versions[names[i]], self._versions[names[j]]):
                     results[(i, j)] = PairResult(i, j, r, "reuse")
                     stats.pairs_reused += 1
                 elif r.success and verified and (prior := self._prior((names[i], names[j]))) is not None:
@@ -895,7 +914,6 @@ class Merger:
 
         result = self._fuse(maps, names, results, poses, report, warnings, reference, stats)
         result.elapsed_s = time.perf_counter() - t0
-        self._last = result
         if result.success and result.grid is not None:
             to_metric = result.grid.pixel_to_metric_matrix()
             self._poses = {names[k]: (maps[k], to_metric @ result.transforms[k].params) for k in result.placed}  # type: ignore[union-attr]
@@ -921,8 +939,8 @@ class Merger:
             if not r.success:
                 continue
             metric_scale = pixel_to_metric(r.transform, maps[j], maps[i]).scale
-            off = not (math.isfinite(metric_scale) and metric_scale > 0) or abs(math.log(metric_scale)) > math.log1p(SCALE_TOLERANCE)
-            if self.scale_check != "off" and off:
+            disagrees = not (math.isfinite(metric_scale) and metric_scale > 0) or abs(math.log(metric_scale)) > math.log1p(SCALE_TOLERANCE)
+            if self.scale_check != "off" and disagrees:
                 p.note = (
                     f"scale {r.transform.scale:.3f} between {names[i]} and {names[j]} disagrees with their resolutions "
                     f"({maps[i].resolution:g} and {maps[j].resolution:g} m/cell say {maps[j].resolution / maps[i].resolution:.3f})"

@@ -272,8 +272,8 @@ def _cmd_align(args) -> int:
 def _read_inputs(args, limits: Limits):
     """The maps named on the command line: files, and every chosen topic of every bag.
 
-    Returns ``(maps, names, child_frames, input_paths)``; a map from a bag is named by its
-    topic (``BAG:TOPIC`` when several bags hold that topic), a file by its path as given.
+    Returns ``(maps, names, child_frames)``; a map from a bag is named by its topic
+    (``BAG:TOPIC`` when several bags hold that topic), a file by its path as given.
     """
     from ..io.bags import bag_topics, child_frame_for, is_bag, read_bag_maps
 
@@ -311,8 +311,7 @@ def _read_inputs(args, limits: Limits):
         maps.append(grid)
         names.append(name)
         frames.append(frame)
-    inputs = [Path(p) for p in bags] + _input_files([p for p in args.maps if p not in bags], limits)
-    return maps, names, frames, inputs
+    return maps, names, frames
 
 
 def _cmd_merge(args) -> int:
@@ -342,7 +341,7 @@ def _cmd_merge(args) -> int:
             raise OutputError(f"bag {bag} is one of the inputs; choose another name")
         if bag.exists() and not args.force:
             raise OutputError(f"bag {bag} exists; use --force to overwrite it")
-    maps, names, frames, _ = _read_inputs(args, limits)
+    maps, names, frames = _read_inputs(args, limits)
     if len(maps) < 2:
         raise _UsageError(f"merge needs at least two maps, got {len(maps)}")
     reference = 0
