@@ -187,3 +187,13 @@ def test_reverify_refines_a_nearby_pose_and_declines_a_wrong_one(fleet):
     far = SimilarityTransform(translation=(60.0, 0.0)) @ AffineTransform(truth)
     wrong = reverify(a, b, far, runner_up_ratio=0.5)
     assert not wrong.success and wrong.transform is None and "declined" in wrong.message
+
+
+def test_the_same_maps_under_other_names_merge_identically(fleet):
+    maps = [fleet.maps[k] for k in (0, 5, 7, 6)]
+    first = gridmerge.merge(maps, rng=4)
+    renamed = gridmerge.merge([m.replace(name=f"/robot{k}/map") for k, m in enumerate(maps)], rng=4)
+    assert first.success and renamed.success
+    for s, t in zip(first.transforms, renamed.transforms):
+        np.testing.assert_array_equal(s.params, t.params)
+    np.testing.assert_array_equal(np.nan_to_num(first.grid.data, nan=-1), np.nan_to_num(renamed.grid.data, nan=-1))

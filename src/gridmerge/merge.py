@@ -499,9 +499,11 @@ def reverify(
     )
 
 
-def _pair_seed(base: int, i: str, j: str) -> int:
-    """A seed of its own for each pair of maps (by name), whatever order pairs run in."""
-    h = hashlib.blake2b(f"{base}\0{i}\0{j}".encode("utf-8", "surrogatepass"), digest_size=8).digest()
+def _pair_seed(base: int, digest_a: bytes, digest_b: bytes) -> int:
+    """A seed of its own for each pair of maps, from the maps' contents (:func:`_digest`):
+    the same maps get the same seed whatever their names (file paths or bag topics) and
+    whatever order the pairs run in."""
+    h = hashlib.blake2b((base % 2**64).to_bytes(8, "little") + digest_a + digest_b, digest_size=8).digest()
     return int.from_bytes(h, "little") >> 1
 
 
@@ -631,7 +633,7 @@ class Merger:
         Pixels (RMS) by which an edge may disagree with the joint solution before it is
         dropped (:func:`gridmerge.graph.solve`).
     rng : int or numpy.random.Generator
-        Base seed; each pair gets its own seed from it and the two maps' names.
+        Base seed; each pair gets its own seed from it and the two maps' contents.
     progress : callable, optional
         ``progress(stage, done, total)``, stage ``"features"`` or ``"pairs"``.
     options, limits, interpolation, max_canvas_factor, max_canvas_cells, **overrides
@@ -797,7 +799,7 @@ class Merger:
 
     def _job(self, i, j, names, feats, prior: _Prior | None = None) -> _PairJob:
         return _PairJob(self._maps[names[i]], self._maps[names[j]], self.method, self.options,
-                        _pair_seed(self._seed, names[i], names[j]), (feats[i], feats[j]), prior)
+                        _pair_seed(self._seed, self._digests[names[i]], self._digests[names[j]]), (feats[i], feats[j]), prior)
 
     def _store(self, names, i, j, r: AlignResult, how: str) -> PairResult:
         r = _finite_result(r)
