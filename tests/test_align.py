@@ -185,3 +185,17 @@ def test_keypoints_first_skips_the_walls_only_when_settled():
     na, nb = samples.negative_pair(0)
     r = align(na, nb, rng=0)
     assert not r.success and "walls" not in r.details
+
+
+@pytest.mark.shared
+def test_wall_led_search_aligns_what_the_overlap_seeking_one_cannot(shared_data):
+    # Simulated benchmark pair 41 (seed 0): two robots in the Halmstad E5 office sharing
+    # half their maps, whose explored areas have similar shapes elsewhere. The first,
+    # overlap-seeking correlation offers no confident pose; the wall-led one does.
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=0, data_dir=shared_data)[41]
+    r = align(case.a, case.b, rng=0)
+    assert r.details["overlap_seeking"]["confidence"] < 0.5
+    assert r.success and r.details["source"] == "walls (wall-led)"
+    assert corner_error(r.transform, case.truth, case.b.shape) < 2.0

@@ -14,7 +14,15 @@ Methods
     for the translation, :mod:`gridmerge.correlate`). All are scored by wall agreement, the
     best distinct ones refined to sub-pixel precision against the cells of both maps, and
     the winner's confidence combines its wall agreement with how clearly it beats every
-    clearly different pose (repeated structure makes them close). The best keypoint
+    clearly different pose (repeated structure makes them close). The wall correlation
+    runs in two forms: first overlap-seeking (shared free space weighs much, so its poses
+    share large explored areas, where wall agreement judges well); when that pose is not
+    confident enough, wall-led (shared free space weighs little: it finds the right pose
+    of maps that share a small part far more often, but also poses that agree by chance
+    on a small part). The wall-led candidates are ranked by wall agreement weighed by the
+    walls compared and the share of the maps overlapped, every pose of the first search
+    counts as a rival, and the winner replaces the first one only when it is more
+    confident and its walls agree on at least 75 % of the overlap. The best keypoint
     candidate is judged first, alone: when it settles the pose beyond doubt (confidence
     at least ``AlignOptions.keypoints_first``, walls agreeing on 75 % of the overlap, no
     clearly different keypoint candidate above 60 % of its score), the wall correlation
@@ -526,16 +534,32 @@ class _Judge:
         return np.asarray(t.params, dtype=float).tobytes()
 
     def quick(self, t: AffineTransform) -> float:
+        """Wall agreement of ``t`` (the scorer's sample)."""
+        return self._score(t)[0]
+
+    def weighed(self, t: AffineTransform) -> float:
+        """Wall agreement of ``t`` weighed by how much it rests on: discounted when it
+        compares few walls or shares little of the maps (a pose that barely touches the
+        other map can agree perfectly on a handful of walls), and mildly (fourth root)
+        by the shared part, so that among equally agreeing poses the one explaining more
+        of the maps wins."""
+        return self._score(t)[1]
+
+    def _score(self, t: AffineTransform) -> tuple[float, float]:
         k = self._key(t)
         if k not in self._quick:
-            self._quick[k] = self.scorer(t).wall_agreement
+            q = self.scorer(t)
+            support = min(1.0, q.walls_compared / _MIN_WALLS_COMPARED) * min(1.0, q.shared / _MIN_SHARED)
+            self._quick[k] = (q.wall_agreement, q.wall_agreement * support * min(1.0, q.shared) ** 0.25)
         return self._quick[k]
 
     def _refined(self, memo: dict, t: AffineTransform, rng=None):
+        """``t`` refined against the maps (or ``t`` itself when the refinement is not
+        accepted); one refinement per transform, whatever the score."""
         k = self._key(t)
         if k not in memo:
             refined, report = refine_direct(self.a, self.b, t, rng=self.rng if rng is None else rng, cache=self.fields)
-            memo[k] = (refined, self.quick(refined)) if report.accepted else (t, self.quick(t))
+            memo[k] = refined if report.accepted else t
         return memo[k]
 
     def _verify(self, t: AffineTransform) -> Verification:
@@ -552,34 +576,42 @@ class _Judge:
         scored = sorted(((self.quick(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
         wall, best, kind = scored[0]
         if self.opts.refine:
-            best, wall = self._refined({}, best, rng=_side_generator(self.rng))
+            best = self._refined({}, best, rng=_side_generator(self.rng))
+            wall = self.quick(best)
         runner_up = max((w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)), default=0.0)
         return wall, best, kind, runner_up, self._verify(best)
 
     def far_apart(self, s: AffineTransform, t: AffineTransform, px: float) -> bool:
         return bool(np.hypot(*(s(self.box) - t(self.box)).T).max() >= px)
 
-    def decide(self, candidates: list[tuple[AffineTransform, str]]):
-        """``(wall, best, kind, runner_up, verification)`` of the best candidate."""
+    def decide(self, candidates: list[tuple[AffineTransform, str]], *, weighed: bool = False, rivals=()):
+        """``(score, best, kind, runner_up, verification)`` of the best candidate.
+
+        Candidates are ranked by :meth:`quick` or, with ``weighed``, by :meth:`weighed`;
+        ``rivals`` (transforms) are further poses the runner-up is looked for among.
+        """
         opts = self.opts
-        scored = sorted(((self.quick(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
+        score = self.weighed if weighed else self.quick
+        scored = sorted(((score(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
         # Refine the most promising distinct candidates against the maps and score them again.
-        chosen: list[list] = []  # [wall, transform, kind]
-        for wall, t, kind in scored:
+        chosen: list[list] = []  # [score, transform, kind]
+        for value, t, kind in scored:
             if len(chosen) >= _REFINE_TOP:
                 break
             if any(not self.far_apart(c[1], t, _SAME_POSE_PX) for c in chosen):
                 continue
             if opts.refine:
-                t, wall = self._refined(self._memo, t)
-            chosen.append([wall, t, kind])
+                t = self._refined(self._memo, t)
+                value = score(t)
+            chosen.append([value, t, kind])
         chosen.sort(key=lambda c: -c[0])
-        wall, best, kind = chosen[0]
+        value, best, kind = chosen[0]
         # The best score of a clearly different pose: repeated structure makes it close to the best.
         others = [w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)]
         others += [c[0] for c in chosen[1:] if self.far_apart(best, c[1], _OTHER_POSE_PX)]
+        others += [score(t) for t in rivals if self.far_apart(best, t, _OTHER_POSE_PX)]
         runner_up = max(others, default=0.0)
-        return wall, best, kind, runner_up, self._verify(best)
+        return value, best, kind, runner_up, self._verify(best)
 
 
 def _side_generator(gen: np.random.Generator) -> np.random.Generator:
@@ -618,24 +650,52 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
             }
             return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
         details["keypoints_first"] = {"confidence": round(confidence, 4), "wall_agreement": round(full_wall, 4), "runner_up_ratio": round(ratio, 4)}
-    corr = correlation_hypotheses(a, b, scales=_candidate_scales(a, b, hyps))
-    candidates = [(h.transform, "keypoints") for h in hyps] + [(h.transform, "walls") for h in corr]
+    scales = _candidate_scales(a, b, hyps)
+    keypoints = [(h.transform, "keypoints") for h in hyps]
+    # First the overlap-seeking correlation (shared free space weighs much): its best
+    # poses are those with large shared explored areas, where the wall agreement judges
+    # well. ``scales[0]`` is the maps' resolution ratio, the others the keypoints' scales.
+    wide = correlation_hypotheses(a, b, scales=scales, free_agreement=_OVERLAP_SEEKING)
+    wide = sorted(wide, key=lambda h: -h.score)[:_WIDE_HYPOTHESES]
+    candidates = keypoints + [(h.transform, "walls") for h in wide]
     if not candidates:
         return Estimate(None, np.zeros(len(src), bool), src, dst, "no candidate transform (no walls, no keypoint matches)", details)
     wall, best, kind, runner_up, v = judge.decide(candidates)
+    ratio = runner_up / wall if wall > 0 else 1.0
+    confidence = _structural_confidence(_full_wall(v), ratio)
+    if confidence < opts.min_confidence:
+        # Then the wall-led correlation, which finds the right pose far more often when
+        # the maps share little, but also poses that agree by chance on a small part:
+        # its candidates are ranked by agreement weighed by what it rests on, every pose
+        # seen so far is a rival, and its winner must agree as clearly as a settled
+        # keypoint pose (on the simulated set its right poses agree on 85 % or more,
+        # its wrong ones on 44-68 %).
+        # It trusts the maps' resolutions: at the keypoints' scales it only added poses
+        # that agree by chance (one at scale 0.28 between two 0.05 m maps of a fleet).
+        walls = correlation_hypotheses(a, b, scales=scales[:1])
+        second = judge.decide(keypoints + [(h.transform, "walls (wall-led)") for h in walls], weighed=True, rivals=[t for t, _ in candidates])
+        ratio2 = second[3] / second[0] if second[0] > 0 else 1.0
+        confidence2 = _structural_confidence(_full_wall(second[4]), ratio2)
+        details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4)}
+        if confidence2 > confidence and _full_wall(second[4]) >= _SETTLED_WALL:
+            wall, best, kind, runner_up, v = second
+            ratio, confidence = ratio2, confidence2
+            candidates = candidates + [(h.transform, "walls") for h in walls]
     inl = best.residuals(src, dst) < opts.residual_threshold if len(src) else np.zeros(0, bool)
-    full_wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
     # The ambiguity is judged on the quick scores (all candidates have one), the walls on
     # the full verification of the winner.
-    confidence = _structural_confidence(full_wall, runner_up / wall if wall > 0 else 1.0)
     details.update({
         "source": kind,
         "candidates": len(candidates),
         "wall_agreement_quick": round(wall, 4),
         "runner_up": round(runner_up, 4),
-        "runner_up_ratio": round(runner_up / wall, 4) if wall > 0 else 1.0,
+        "runner_up_ratio": round(ratio, 4),
     })
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+
+
+def _full_wall(v: Verification) -> float:
+    return v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
 
 
 def _structural_confidence(wall: float, runner_up_ratio: float) -> float:
@@ -788,6 +848,15 @@ _REFINE_TOP = 3
 #: above this share of the winner's score (besides ``AlignOptions.keypoints_first``).
 _SETTLED_WALL = 0.75
 _SETTLED_RATIO = 0.6
+#: Shared free space's weight in the first, overlap-seeking wall correlation (see
+#: :mod:`gridmerge.correlate`), and the hypotheses it keeps (all scales together).
+_OVERLAP_SEEKING = 0.0625
+_WIDE_HYPOTHESES = 20
+#: Wall cells (both maps, as sampled by the scorer) a candidate must compare for its quick
+#: score to count fully.
+_MIN_WALLS_COMPARED = 40
+#: ... and share of the smaller map it must overlap.
+_MIN_SHARED = 0.05
 #: Two candidate transforms closer than this (b's corners, a's pixels) are one pose.
 _SAME_POSE_PX = 10.0
 #: ... and farther than this, two clearly different poses (for the ambiguity check).

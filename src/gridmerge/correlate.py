@@ -8,9 +8,26 @@ spectral map merging:
   cells, modulo 180 degrees) of each map; the circular cross-correlation of the two
   histograms peaks at the rotation between the maps, up to 180 degrees (both are tried);
 * **translation**: for each candidate rotation (and scale), the cross-correlation of the two
-  maps' smoothed wall images, computed with FFTs at a coarse resolution; its highest peaks
-  are candidate translations. Walls count positively and free space slightly negatively,
-  so walls crossing the other map's free space are penalised.
+  maps' smoothed wall and free-space images, computed with FFTs at a coarse resolution;
+  its highest peaks are candidate translations. The score of a shift is
+
+      walls_a * walls_b - free_weight * (walls_a * free_b + free_a * walls_b)
+      + free_agreement * free_a * free_b
+
+  summed over the cells: walls on walls count, walls crossing the other map's free space
+  are penalised, and shared free space counts a little.
+
+How much shared free space counts decides what the peaks follow. Robot maps hold far
+more free cells than wall cells (20 to 100 times, at the coarse resolution), so with
+``free_agreement = free_weight ** 2`` (the product of two signed images
+``walls - free_weight * free``, this module's first form, still used by
+:func:`gridmerge.align` as its overlap-seeking search) the peaks follow the largest shared
+explored area: good when the maps overlap much, blind when they share a small part.
+The default, ``free_agreement = 0.015``, lets the walls lead: on the simulated benchmark
+pairs the right pose is among the candidates for 36 of 48 pairs instead of 20 (seed 0;
+37 instead of 25 with seed 1), and first for 95 of the 97 real Halmstad pairs instead
+of 88, but it also proposes poses that agree by chance on a small part of the maps,
+which the caller must weigh (see :func:`gridmerge.align`).
 
 The result is a ranked list of similarity transforms, to be refined and verified against
 the maps (:mod:`gridmerge.refine`, :mod:`gridmerge.verify`).
@@ -107,7 +124,8 @@ def rotation_candidates(a: OccupancyGrid, b: OccupancyGrid, n: int = 4, min_sepa
     return [p * step for p in peaks]
 
 
-def _signed_walls(grid: OccupancyGrid, factor: float, free_weight: float, sigma: float) -> np.ndarray:
+def _channels(grid: OccupancyGrid, factor: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(walls, free)``: the grid's coarse, smoothed wall and free-space images."""
     walls = grid.occupied().astype(np.float32)
     free = grid.free().astype(np.float32)
     if factor < 1.0:
@@ -119,24 +137,41 @@ def _signed_walls(grid: OccupancyGrid, factor: float, free_weight: float, sigma:
         size = (max(1, round(walls.shape[1] * factor)), max(1, round(walls.shape[0] * factor)))
         walls = cv2.resize(walls, size, interpolation=cv2.INTER_AREA)
         free = cv2.resize(free, size, interpolation=cv2.INTER_AREA)
-    return cv2.GaussianBlur(walls - free_weight * free, (0, 0), sigma)
+    return cv2.GaussianBlur(walls, (0, 0), sigma), cv2.GaussianBlur(free, (0, 0), sigma)
 
 
-def _peaks(a_img: np.ndarray, b_img: np.ndarray, n: int, suppress: int, spectra: dict | None = None):
-    """``n`` best ``(dx, dy, value)``: shifts of b's image onto a's by cross-correlation.
+def _peaks(
+    a_img: tuple[np.ndarray, np.ndarray],
+    b_img: tuple[np.ndarray, np.ndarray],
+    n: int,
+    suppress: int,
+    weights: tuple[float, float],
+    spectra: dict | None = None,
+):
+    """``n`` best ``(dx, dy, value)``: shifts of b's ``(walls, free)`` images onto a's.
 
+    ``weights`` are ``(free_weight, free_agreement)`` (see the module's documentation).
     ``spectra`` keeps a's transforms by padded size, for many b images against one a.
     """
-    h = cv2.getOptimalDFTSize(a_img.shape[0] + b_img.shape[0])
-    w = cv2.getOptimalDFTSize(a_img.shape[1] + b_img.shape[1])
-    if spectra is None:
-        fa = np.fft.rfft2(a_img, (h, w))
+    (aw, af), (bw, bf) = a_img, b_img
+    lam, mu = weights
+    h = cv2.getOptimalDFTSize(aw.shape[0] + bw.shape[0])
+    w = cv2.getOptimalDFTSize(aw.shape[1] + bw.shape[1])
+    if spectra is None or (h, w) not in spectra:
+        fa = (np.fft.rfft2(aw, (h, w)), np.fft.rfft2(af, (h, w)))
+        if spectra is not None:
+            spectra[(h, w)] = fa
     else:
-        if (h, w) not in spectra:
-            spectra[(h, w)] = np.fft.rfft2(a_img, (h, w))
         fa = spectra[(h, w)]
-    fb = np.fft.rfft2(b_img, (h, w))
-    c = np.fft.irfft2(fa * np.conj(fb), (h, w))  # c[dy, dx] = sum a[y + dy, x + dx] b[y, x]
+    # sum_ww - lam (sum_wf + sum_fw) + mu sum_ff is linear in b's images: a's walls meet
+    # (walls - lam free) of b, a's free space (mu free - lam walls).
+    signed = np.fft.rfft2(bw - lam * bf, (h, w))
+    if math.isclose(mu, lam * lam):
+        # One product of two signed images: (aw - lam af) (bw - lam bf).
+        spec = (fa[0] - lam * fa[1]) * np.conj(signed)
+    else:
+        spec = fa[0] * np.conj(signed) + fa[1] * np.conj(np.fft.rfft2(mu * bf - lam * bw, (h, w)))
+    c = np.fft.irfft2(spec, (h, w))  # c[dy, dx] = sum a[y + dy, x + dx] b[y, x]
     out = []
     for _ in range(n):
         y, x = np.unravel_index(int(np.argmax(c)), c.shape)
@@ -159,6 +194,7 @@ def correlation_hypotheses(
     peaks: int = 3,
     size: int = 200,
     free_weight: float = 0.25,
+    free_agreement: float = 0.015,
     sigma: float = 1.0,
     max_hypotheses: int = 20,
 ) -> list[CorrelationHypothesis]:
@@ -181,30 +217,35 @@ def correlation_hypotheses(
     size : int
         Longest side (cells) of the coarse images correlated.
     free_weight : float
-        Weight of free space (negative) against walls (positive) in the correlated images.
+        Penalty of a wall cell on the other map's free space, against 1 for a wall on a wall.
+    free_agreement : float
+        Reward of a free cell on the other map's free space (small: free space dominates).
     sigma : float
         Smoothing of the coarse images, in coarse cells.
     max_hypotheses : int
+        Hypotheses kept per scale.
 
     Returns
     -------
     list of CorrelationHypothesis
-        Best first.
+        Scale by scale in the order of ``scales``, best first within each.
     """
     if rotations is None:
         rotations = rotation_candidates(a, b, n_rotations)
     if not rotations or not a.occupied().any() or not b.occupied().any():
         return []
     factor = min(1.0, size / max(max(a.shape), max(b.shape) * max(scales)))
-    a_img = _signed_walls(a, factor, free_weight, sigma)
+    a_img = _channels(a, factor, sigma)
+    weights = (free_weight, free_agreement)
     spectra: dict = {}
     out: list[CorrelationHypothesis] = []
     hb, wb = b.shape
     corners = np.array([[0.0, 0.0], [wb, 0.0], [wb, hb], [0.0, hb]])
     coarse = np.diag([factor, factor, 1.0])
     for s in scales:
-        b_img = _signed_walls(b, min(1.0, factor * s), free_weight, sigma)
-        fb = b_img.shape[1] / wb  # b's coarse cells per b pixel
+        found: list[CorrelationHypothesis] = []
+        b_img = _channels(b, min(1.0, factor * s), sigma)
+        fb = b_img[0].shape[1] / wb  # b's coarse cells per b pixel
         for base in rotations:
             for half_turn in (0.0, 180.0):
                 for d in fine_deg:
@@ -218,10 +259,12 @@ def correlation_hypotheses(
                     from_coarse_b = np.diag([1.0 / fb, 1.0 / fb, 1.0])
                     m = place @ from_coarse_b
                     shape = (int(math.ceil(hi[0] - lo[0])) + 1, int(math.ceil(hi[1] - lo[1])) + 1)
-                    warped = cv2.warpAffine(b_img, m[:2], shape, flags=cv2.INTER_LINEAR)
-                    for dx, dy, value in _peaks(a_img, warped, peaks, suppress=4, spectra=spectra):
+                    warped = tuple(cv2.warpAffine(x, m[:2], shape, flags=cv2.INTER_LINEAR) for x in b_img)
+                    for dx, dy, value in _peaks(a_img, warped, peaks, 4, weights, spectra=spectra):
                         shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
                         full = np.linalg.inv(coarse) @ shift @ place
-                        out.append(CorrelationHypothesis(SimilarityTransform(full), value, math.degrees(theta) % 360.0, s))
-    out.sort(key=lambda h: -h.score)
-    return out[:max_hypotheses]
+                        found.append(CorrelationHypothesis(SimilarityTransform(full), value, math.degrees(theta) % 360.0, s))
+        # Scores of different scales are not comparable (a smaller b meets fewer of a's
+        # cells): each scale keeps its own best.
+        out.extend(sorted(found, key=lambda h: -h.score)[:max_hypotheses])
+    return out

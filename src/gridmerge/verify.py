@@ -204,12 +204,16 @@ class QuickScore:
         Symmetric share, among wall cells landing near the other map's walls or on its free
         space away from walls, of those near walls: walls seen from different sides or
         missing in one map do not lower it, walls across the other map's rooms do.
+    shared : float
+        The larger of the two shares of known cells landing on the other map's known cells
+        (about the share of the smaller map that overlaps the other).
     """
 
     wall_agreement: float
     overlap: float
     walls_compared: int
     consistency: float = 0.0
+    shared: float = 0.0
 
 
 class WallScorer:
@@ -269,7 +273,9 @@ class WallScorer:
         consistency = float(np.mean(cons)) if cons else 0.0
         landed, _, _ = self._lookup(pb @ transform.params[:2, :2].T + transform.params[:2, 2], sa, ca, None, 0.0)
         overlap = landed / len(pb) if len(pb) else 0.0
-        return QuickScore(wall, overlap, n_ab + n_ba, consistency)
+        landed_a, _, _ = self._lookup(pa @ inv[:2, :2].T + inv[:2, 2], sb, cb, None, 0.0)
+        shared = max(overlap, landed_a / len(pa) if len(pa) else 0.0)
+        return QuickScore(wall, overlap, n_ab + n_ba, consistency, shared)
 
 
 def _strided_cells(mask: np.ndarray, max_points: int) -> np.ndarray:

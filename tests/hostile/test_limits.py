@@ -334,7 +334,11 @@ def test_thin_and_tiny_maps_have_no_keypoints():
 def test_degenerate_maps_are_declined_not_crashed(method, shape):
     d = np.random.default_rng(0).integers(0, 2, shape).astype(float)
     r = gridmerge.align(OccupancyGrid(d), OccupancyGrid(d), method=method)
-    assert r.success is False and r.message
+    assert r.message
+    if r.success:
+        # A map aligned with itself: only the identity is right (a 1 x 500 row of random
+        # cells has a single pose; the wall-led search finds it).
+        np.testing.assert_allclose(r.transform.params, np.eye(3), atol=1e-6)
 
 
 def test_very_thin_map_with_walls():
