@@ -381,6 +381,21 @@ def test_console_script_on_path(tmp_path):
     assert proc.stdout.strip() == f"gridmerge {gridmerge.__version__}"
 
 
+def test_a_reader_that_stops_early_ends_the_command_quietly(tmp_path):
+    # `gridmerge sample DIR | head -0`: the pipe's reading end is closed before the
+    # command prints its summary line; the files it wrote before are complete.
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        proc = subprocess.run(_command(["sample", "."]), cwd=tmp_path, stdout=write, stderr=subprocess.PIPE,
+                              stdin=subprocess.DEVNULL, text=True, timeout=TIMEOUT_S, env=_env())
+    finally:
+        os.close(write)
+    assert proc.returncode == 141, proc.stderr
+    assert proc.stderr == ""
+    assert gridmerge.load_map(tmp_path / "a.yaml").shape == gridmerge.load_map(tmp_path / "a.pgm").shape
+
+
 @pytest.mark.parametrize("args", [["--help"], ["align", "--help"], ["merge", "--help"]], ids=["top", "align", "merge"])
 def test_help(args, runs):
     proc = runs.get("help-" + "-".join(args)).result

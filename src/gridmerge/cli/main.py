@@ -38,6 +38,9 @@ EXIT_DECLINED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143
+#: The reader of our standard output went away (``gridmerge ... | head``): 128 + SIGPIPE,
+#: as a shell tool killed by the signal would end, and nothing printed.
+EXIT_BROKEN_PIPE = 141
 
 
 class _UsageError(GridMergeError):
@@ -462,6 +465,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_TERMINATED
     except SystemExit as exc:  # --help and --version
         return int(exc.code or 0) if isinstance(exc.code, int) else 0
+    except BrokenPipeError:
+        # Whatever was being written to a file is complete or not there (files are
+        # written atomically); only the printout is cut. Python's final flush of stdout
+        # would fail again: point it at the null device.
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
     except Exception as exc:  # noqa: BLE001 - every error ends as one line
         if debug:  # the traceback, then the usual line and exit code (not Python's 1 = "declined")
             traceback.print_exc()
@@ -481,6 +490,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+
+
+def _silence_stdout() -> None:
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no real file behind sys.stdout (tests)
+        pass
 
 
 def _catch_sigterm():
