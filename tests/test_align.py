@@ -199,3 +199,5 @@ def test_wall_led_search_aligns_what_the_overlap_seeking_one_cannot(shared_data)
     assert r.details["overlap_seeking"]["confidence"] < 0.5
     assert r.success and r.details["source"] == "walls (wall-led)"
     assert corner_error(r.transform, case.truth, case.b.shape) < 2.0
+    # Without the second search the pair is declined.
+    assert not align(case.a, case.b, rng=0, wall_led=False).success
