@@ -64,3 +64,32 @@ def test_warp_never_spreads_unknown_into_known_values():
     # Every known value stays a true mix of known cells (0 here), never pulled by NaN.
     assert (half[known] == 0).all()
     assert known[:, 0].all() and not known[:, 3].any()
+
+
+@pytest.mark.parametrize("rule", ["average", "logodds", "max"])
+def test_layers_are_consumed_one_at_a_time_and_left_alone(rule):
+    rng = np.random.default_rng(0)
+    layers = []
+    for _ in range(4):
+        v = rng.random((30, 40)).astype(np.float32)
+        v[rng.random(v.shape) < 0.4] = np.nan
+        layers.append(v)
+    copies = [v.copy() for v in layers]
+    # A generator (merge warps each map only when it is asked for the next layer).
+    out = fuse_values((v for v in layers), rule)
+    np.testing.assert_array_equal(out, fuse_values(list(layers), rule))
+    for v, c in zip(layers, copies):
+        np.testing.assert_array_equal(v, c)  # inputs are not modified
+    known = ~np.isnan(np.stack(layers))
+    assert np.array_equal(np.isnan(out), ~known.any(0))
+    if rule == "average":
+        some = known.any(0)
+        expected = np.nansum(np.stack(layers), 0)[some] / known.sum(0)[some]
+        np.testing.assert_allclose(out[some], expected, rtol=1e-6)
+
+
+def test_layers_of_different_shapes_are_refused():
+    with pytest.raises(ValueError, match="different shapes"):
+        fuse_values([A, np.zeros((2, 2), np.float32)])
+    with pytest.raises(ValueError, match="nothing to fuse"):
+        fuse_values(iter([]))

@@ -21,7 +21,7 @@ Examples
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -74,18 +74,23 @@ def warp_values(
     kw = dict(flags=flag, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
     wk = cv2.warpAffine(known, m, (w, h), **kw)
     wv = cv2.warpAffine(vals * known, m, (w, h), **kw)
-    out = np.full((h, w), np.nan, dtype=np.float32)
+    # In place: the output is canvas-sized, and merged canvases are the largest arrays
+    # gridmerge makes.
     ok = wk >= 0.5 - 1e-6
-    out[ok] = np.clip(wv[ok] / wk[ok], 0.0, 1.0)
-    return out
+    np.divide(wv, wk, out=wv, where=ok)
+    np.clip(wv, 0.0, 1.0, out=wv)
+    wv[~ok] = np.nan
+    return wv
 
 
-def fuse_values(layers: Sequence[np.ndarray], rule: str = "average") -> np.ndarray:
+def fuse_values(layers: Iterable[np.ndarray], rule: str = "average") -> np.ndarray:
     """Fuse equally shaped occupancy arrays (``NaN`` = unknown) cell by cell.
 
     Parameters
     ----------
-    layers : sequence of (H, W) float arrays
+    layers : iterable of (H, W) float arrays
+        Consumed one at a time: a generator that warps each map as it is needed keeps
+        one layer in memory, not all of them.
     rule : {"average", "logodds", "max"}
 
     Returns
@@ -95,24 +100,41 @@ def fuse_values(layers: Sequence[np.ndarray], rule: str = "average") -> np.ndarr
     """
     if rule not in FUSION_RULES:
         raise ValueError(f"unknown fusion rule {rule!r} (use one of {', '.join(FUSION_RULES)})")
-    if not layers:
+    total = count = extra = None
+    for layer in layers:
+        v = np.asarray(layer, dtype=np.float32)
+        if total is None:
+            total = np.zeros(v.shape, np.float32)  # sum of the known values
+            count = np.zeros(v.shape, np.uint16)  # layers knowing each cell
+            if rule == "max":
+                extra = np.full(v.shape, -np.inf, np.float32)
+            elif rule == "logodds":
+                extra = np.zeros(v.shape, np.float32)  # sum of the log-odds
+        elif v.shape != total.shape:
+            raise ValueError(f"layers of different shapes: {total.shape} and {v.shape}")
+        known = ~np.isnan(v)
+        count += known
+        np.add(total, v, out=total, where=known)
+        if rule == "max":
+            np.fmax(extra, v, out=extra)  # fmax ignores NaN
+        elif rule == "logodds":
+            p = np.clip(np.where(known, v, np.float32(0.5)), _LOGODDS_CLIP, 1.0 - _LOGODDS_CLIP)
+            extra += np.log(p / (1.0 - p))
+    if total is None:
         raise ValueError("nothing to fuse")
-    stack = np.stack([np.asarray(l, dtype=np.float32) for l in layers])
-    known = ~np.isnan(stack)
-    count = known.sum(0)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # The result is computed in place, in arrays made here (the canvas may be large).
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         if rule == "average":
-            out = np.where(known, stack, 0.0).sum(0) / count
+            out = np.divide(total, count, out=total)
         elif rule == "max":
-            out = np.where(known, stack, -np.inf).max(0)
+            out = extra
         else:
-            p = np.clip(np.where(known, stack, 0.5), _LOGODDS_CLIP, 1.0 - _LOGODDS_CLIP)
-            logit = np.log(p / (1.0 - p)).sum(0)
-            out = 1.0 / (1.0 + np.exp(-logit))
+            out = np.negative(extra, out=extra)
+            np.exp(out, out=out)
+            out += 1.0
+            np.reciprocal(out, out=out)
             # A cell known to one map only keeps that map's value exactly.
             single = count == 1
-            if single.any():
-                out[single] = np.where(known, stack, 0.0).sum(0)[single]
-    out = out.astype(np.float32)
+            out[single] = total[single]
     out[count == 0] = np.nan
     return out

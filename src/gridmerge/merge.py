@@ -1010,7 +1010,8 @@ class Merger:
         transforms: list[AffineTransform | None] = [None] * n
         for k, t in zip(placed, placed_t):
             transforms[k] = shift @ t
-        layers = [warp_values(maps[k].data, transforms[k].params, (ch, cw), interpolation=self.interpolation) for k in placed]  # type: ignore[union-attr]
+        # One warped layer at a time: the canvas may be large and the fleet long.
+        layers = (warp_values(maps[k].data, transforms[k].params, (ch, cw), interpolation=self.interpolation) for k in placed)  # type: ignore[union-attr]
         fused = fuse_values(layers, self.fusion)
         # The canvas's lower-left corner, in the reference's metric frame.
         back = (shift @ to_target).inverse
