@@ -138,3 +138,18 @@ def test_huge_maps_keep_the_initial_estimate():
     t = SimilarityTransform(rotation=0.1)
     out, report = refine_direct(a, a, t)
     assert out is t and not report.accepted and math.isnan(report.rms_after)
+
+
+def test_scale_prior_helps_only_where_the_cells_agree(robots):
+    # robot_pair's b has the building's resolution times the scale: the resolution ratio
+    # is the true scale. A prior at the truth refines as precisely as the cells alone; a
+    # prior 1 % off would cost fit, so the refinement is refused and the candidate kept.
+    a, b, truth = robots
+    start = _perturbed(truth, 0)
+    free, _ = refine_direct(a, b, start, rng=0, cache={})
+    right, report = refine_direct(a, b, start, rng=0, cache={}, scale_prior=(truth.scale, 4.0))
+    assert report.accepted and corner_error(right, truth, b.shape) < 0.5
+    assert abs(right.scale / truth.scale - 1) <= abs(free.scale / truth.scale - 1) + 1e-4
+    wrong, report = refine_direct(a, b, start, rng=0, cache={}, scale_prior=(truth.scale * 1.01, 4.0))
+    assert not report.accepted and report.rms_after > report.rms_before
+    np.testing.assert_array_equal(wrong.params, start.params)

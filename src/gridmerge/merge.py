@@ -48,6 +48,7 @@ from .align import (
     _structural_confidence,
     align,
     crop_to_full,
+    scale_prior,
     full_to_crop,
     working_maps,
 )
@@ -472,7 +473,7 @@ def reverify(
         t = SimilarityTransform.from_estimate(cb.corners(), t(cb.corners())) or SimilarityTransform(t.params)
     shift = 0.0
     if opts.refine:
-        refined, report = refine_direct(ca, cb, t, rng=gen, max_shift=max_shift)
+        refined, report = refine_direct(ca, cb, t, rng=gen, max_shift=max_shift, scale_prior=scale_prior(ca, cb, t, opts))
         if report.accepted:
             t, shift = refined, float(report.shift_px)
     v = verify(ca, cb, t, tolerance=opts.wall_tolerance)

@@ -372,6 +372,7 @@ def refine_direct(
     rng=0,
     cache: dict | None = None,
     factors=None,
+    scale_prior: tuple[float, float] | None = None,
 ) -> tuple[SimilarityTransform, RefineReport]:
     """Refine ``initial`` (b pixels -> a pixels) against the cells of both maps.
 
@@ -398,6 +399,9 @@ def refine_direct(
         transform's scale). Default: all 1 (full resolution), except on maps of more than
         :data:`LARGE_CELLS` cells: 2 for levels smoothed by at least :data:`COARSE_SIGMA`
         pixels.
+    scale_prior : (float, float), optional
+        ``(scale, strength)``: pull the scale towards ``scale`` (e.g. the maps' resolution
+        ratio) with ``strength`` times the information the cells give on the scale.
 
     Returns
     -------
@@ -474,6 +478,8 @@ def refine_direct(
             return np.linalg.inv(to_a) @ m @ np.linalg.inv(from_b)
 
         q_params = to_level(p)
+        # A level's scale is the true scale times this (its pixels are reduced pixels).
+        level_scale = math.hypot(*to_level(np.eye(3))[:2, 0])
         if last:
             _, r0, v0 = residuals(to_level(initial.params))
             rms_before = robust_rms(r0, v0)
@@ -494,6 +500,15 @@ def refine_direct(
             jn = j / norm
             h = (jn.T * w) @ jn
             g = (jn.T * w) @ rv
+            if scale_prior is not None:
+                sa0, sb0 = q_params[0, 0], q_params[1, 0]
+                s_now = math.hypot(sa0, sb0)
+                jp = np.array([sa0 / s_now, sb0 / s_now, 0.0, 0.0])
+                info = float(((j @ jp) ** 2 * w).sum())  # the cells' information on the scale
+                s_level = scale_prior[0] * level_scale
+                jpn = jp / norm
+                h = h + scale_prior[1] * info * np.outer(jpn, jpn)
+                g = g + scale_prior[1] * info * jpn * (s_now - s_level)
             try:
                 delta = -np.linalg.solve(h + 1e-9 * np.eye(4), g) / norm
             except np.linalg.LinAlgError:
