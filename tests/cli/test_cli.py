@@ -336,6 +336,7 @@ def runs(sample_maps, tmp_path_factory):
     # --resolution 0.1: a's own (the default would be b's finer 0.095 m/cell).
     runner.add("merge", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png", "--json", "--fusion", "average", "--resolution", "0.1"], folder("merge"))
     runner.add("align-json", ["align", "a.yaml", "b.yaml", "--json"], sample_maps.folder)
+    runner.add("align-trust", ["align", "a.yaml", "b.yaml", "--json", "--trust-resolution"], sample_maps.folder)
     for fusion in OTHER_FUSIONS:
         runner.add(f"fusion-{fusion}", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--fusion", fusion, "--json", "--resolution", "0.1"], folder(f"fusion-{fusion}"))
     runner.add("merge-raw", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--save-mode", "raw", "--resolution", "0.1"], folder("merge-raw"))
@@ -456,6 +457,16 @@ def test_align_json_metric_uses_the_yaml_frames(runs, sample_maps):
     assert [m["x"], m["y"]] == pytest.approx(origin_b_in_a.tolist(), abs=0.5 * a.resolution)
     err = metric_error(m, a, b, truth)
     assert err < 0.5 * a.resolution, f"metric error {err:.4f} m"
+
+
+def test_trust_resolution_pulls_the_metric_scale_to_one(runs, sample_maps):
+    # The sample maps' resolutions are exact: with --trust-resolution the metric scale
+    # (b's world over a's) is nearer 1 and the pose at least as close to the truth.
+    free = parse_json(runs.get("align-json").result)["metric"]
+    trusted = parse_json(runs.get("align-trust").result)["metric"]
+    assert abs(trusted["scale"] - 1.0) < abs(free["scale"] - 1.0)
+    a, b, truth = sample_maps.a, sample_maps.b, sample_maps.truth
+    assert metric_error(trusted, a, b, truth) <= metric_error(free, a, b, truth) + 1e-3
 
 
 def test_align_text(runs):

@@ -41,6 +41,8 @@ EXIT_TERMINATED = 143
 #: The reader of our standard output went away (``gridmerge ... | head``): 128 + SIGPIPE,
 #: as a shell tool killed by the signal would end, and nothing printed.
 EXIT_BROKEN_PIPE = 141
+#: ``AlignOptions.scale_prior`` of ``--trust-resolution``.
+_SCALE_PRIOR = 4.0
 
 
 class _UsageError(GridMergeError):
@@ -122,6 +124,12 @@ def _parser() -> argparse.ArgumentParser:
     )
     common.add_argument("--method", choices=sorted(METHODS), default="hybrid", help="alignment method (default: hybrid)")
     common.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    common.add_argument(
+        "--trust-resolution",
+        action="store_true",
+        help="the maps' resolutions are exact (laser SLAM maps): refine the scale towards their ratio "
+        "for more precise merges (AlignOptions.scale_prior = 4)",
+    )
     common.add_argument("--json", action="store_true", help="print the result as one JSON object")
     _add_limits(common)
 
@@ -255,7 +263,8 @@ def _cmd_align(args) -> int:
     limits = _limits(args)
     a, b = _load_all([args.a, args.b], args.image_resolution, limits)
     extractor = extractor_for(args.method, limits)
-    r = align(a, b, method=args.method, rng=args.seed, max_keypoints=limits.max_keypoints, extractor=extractor)
+    r = align(a, b, method=args.method, rng=args.seed, max_keypoints=limits.max_keypoints, extractor=extractor,
+              scale_prior=_SCALE_PRIOR if args.trust_resolution else 0.0)
     if args.json:
         _print_json(r.to_dict())
         return EXIT_OK if r.success else EXIT_DECLINED
@@ -366,7 +375,7 @@ def _cmd_merge(args) -> int:
         result = merge(
             maps, method=args.method, fusion=args.fusion, rng=args.seed, limits=limits, names=names,
             reference=reference, resolution=args.resolution, pairs=args.pairs, scale_check=args.scale_check,
-            executor=executor, progress=progress,
+            executor=executor, progress=progress, scale_prior=_SCALE_PRIOR if args.trust_resolution else 0.0,
         )
     if result.success:
         if args.out_bag:
