@@ -491,8 +491,7 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         return Estimate(None, np.zeros(len(src), bool), src, dst, "no consistent transform among the matches")
     def score(model, inl, support):
         v = verify(a, b, model, tolerance=opts.wall_tolerance)
-        wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
-        return (_evidence(int(inl.sum()), 2) * wall, model, inl, v, support)
+        return (_evidence(int(inl.sum()), 2) * _full_wall(v), model, inl, v, support)
 
     # Verify every hypothesis as it is, then refine only the most promising ones.
     scored = sorted((score(h.transform, h.inliers, h.support) for h in hyps), key=lambda t: -t[0])
@@ -660,9 +659,8 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         # Keypoints first: when their hypotheses alone settle the pose beyond doubt, the
         # wall correlation has nothing to add (and costs a third of the search).
         wall, best, kind, runner_up, v = judge.settle([(h.transform, "keypoints") for h in hyps])
-        full_wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
-        ratio = runner_up / wall if wall > 0 else 1.0
-        confidence = _structural_confidence(full_wall, ratio)
+        full_wall = _full_wall(v)
+        ratio, confidence = _judged(wall, runner_up, v)
         if confidence >= opts.keypoints_first and full_wall >= _SETTLED_WALL and ratio <= _SETTLED_RATIO:
             inl = best.residuals(src, dst) < opts.residual_threshold
             details = {
@@ -686,8 +684,7 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     if not candidates:
         return Estimate(None, np.zeros(len(src), bool), src, dst, "no candidate transform (no walls, no keypoint matches)", details)
     wall, best, kind, runner_up, v = judge.decide(candidates)
-    ratio = runner_up / wall if wall > 0 else 1.0
-    confidence = _structural_confidence(_full_wall(v), ratio)
+    ratio, confidence = _judged(wall, runner_up, v)
     if confidence < opts.min_confidence and opts.wall_led:
         # Then the wall-led correlation, which finds the right pose far more often when
         # the maps share little, but also poses that agree by chance on a small part:
@@ -706,8 +703,7 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         led = [(t, kind) for t, kind in keypoints + [(h.transform, "walls (wall-led)") for h in walls] if judge.shared(t) >= _WALL_LED_MIN_SHARED - 0.05]
         if led:
             second = judge.decide(led, weighed=True, rivals=[t for t, _ in candidates])
-            ratio2 = second[3] / second[0] if second[0] > 0 else 1.0
-            confidence2 = _structural_confidence(_full_wall(second[4]), ratio2)
+            ratio2, confidence2 = _judged(second[0], second[3], second[4])
             if confidence2 > confidence and _full_wall(second[4]) >= _SETTLED_WALL and second[4].overlap_fraction >= _WALL_LED_MIN_SHARED:
                 wall, best, kind, runner_up, v = second
                 ratio, confidence = ratio2, confidence2
@@ -730,14 +726,22 @@ def scale_prior(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, opts: Al
     resolution ratio with ``opts.scale_prior``'s strength, when ``t``'s scale is within 3 %
     of that ratio; ``None`` otherwise (maps whose resolutions are wrong are not pulled)."""
     ratio = b.resolution / a.resolution
-    s = math.sqrt(abs(float(np.linalg.det(t.params[:2, :2]))))
+    s = t.scale
     if opts.scale_prior <= 0 or not s > 0 or abs(math.log(s / ratio)) > math.log(_SCALE_PRIOR_RANGE):
         return None
     return (ratio, float(opts.scale_prior))
 
 
 def _full_wall(v: Verification) -> float:
+    """The verification's wall agreement, 0 when there was nothing to compare."""
     return v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
+
+
+def _judged(score: float, runner_up: float, v: Verification) -> tuple[float, float]:
+    """``(runner-up ratio, confidence)`` of a judged pose: its quick ``score``, the best
+    score of a clearly different pose, and its full verification."""
+    ratio = runner_up / score if score > 0 else 1.0
+    return ratio, _structural_confidence(_full_wall(v), ratio)
 
 
 def _structural_confidence(wall: float, runner_up_ratio: float) -> float:
@@ -783,8 +787,7 @@ def _confidence(inliers: int, v: Verification | None, min_samples: int) -> float
         return 0.0
     evidence = _evidence(inliers, min_samples)
     acc = min(1.0, max(0.0, (v.acceptance_index - 0.5) / 0.5))
-    wall = 0.0 if not math.isfinite(v.wall_agreement) else v.wall_agreement
-    return float(evidence * math.sqrt(acc * wall))
+    return float(evidence * math.sqrt(acc * _full_wall(v)))
 
 
 def align(

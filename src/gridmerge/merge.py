@@ -45,6 +45,7 @@ from .align import (
     AlignOptions,
     AlignResult,
     _decline_reason,
+    _full_wall,
     _structural_confidence,
     align,
     crop_to_full,
@@ -477,8 +478,7 @@ def reverify(
         if report.accepted:
             t, shift = refined, float(report.shift_px)
     v = verify(ca, cb, t, tolerance=opts.wall_tolerance)
-    wall = v.wall_agreement if math.isfinite(v.wall_agreement) else 0.0
-    conf = min(float(max_confidence), _structural_confidence(wall, runner_up_ratio))
+    conf = min(float(max_confidence), _structural_confidence(_full_wall(v), runner_up_ratio))
     message = _decline_reason(0, v, conf, opts, need_inliers=False)
     full = crop_to_full(t, oa, ob)
     ok = not message

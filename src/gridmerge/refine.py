@@ -478,8 +478,8 @@ def refine_direct(
             return np.linalg.inv(to_a) @ m @ np.linalg.inv(from_b)
 
         q_params = to_level(p)
-        # A level's scale is the true scale times this (its pixels are reduced pixels).
-        level_scale = math.hypot(*to_level(np.eye(3))[:2, 0])
+        # The prior's scale in this level's (reduced) pixels.
+        s_level = None if scale_prior is None else scale_prior[0] * math.hypot(*to_level(np.eye(3))[:2, 0])
         if last:
             _, r0, v0 = residuals(to_level(initial.params))
             rms_before = robust_rms(r0, v0)
@@ -500,12 +500,11 @@ def refine_direct(
             jn = j / norm
             h = (jn.T * w) @ jn
             g = (jn.T * w) @ rv
-            if scale_prior is not None:
+            if s_level is not None:
                 sa0, sb0 = q_params[0, 0], q_params[1, 0]
                 s_now = math.hypot(sa0, sb0)
                 jp = np.array([sa0 / s_now, sb0 / s_now, 0.0, 0.0])
                 info = float(((j @ jp) ** 2 * w).sum())  # the cells' information on the scale
-                s_level = scale_prior[0] * level_scale
                 jpn = jp / norm
                 h = h + scale_prior[1] * info * np.outer(jpn, jpn)
                 g = g + scale_prior[1] * info * jpn * (s_now - s_level)
