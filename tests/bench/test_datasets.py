@@ -130,6 +130,39 @@ def test_recorded_overlap_matches_the_geometry():
         assert np.hypot(*(centre_a - vb[0])) < 3.0
 
 
+@pytest.mark.parametrize("scale", [0.7, 1.0, 1.45, 1.9])
+def test_walls_are_where_robot_a_sees_them_at_any_resolution(scale):
+    """The truth is the best fit: b's walls, carried into a's frame, lie where a's are
+    (not half a world cell nearer the scanner, as when a coarse cell was a wall whenever
+    any part of a wall fell in it)."""
+    world = np.zeros((200, 240), np.float32)
+    world[:3, :] = world[-3:, :] = 1.0
+    world[:, :3] = world[:, -3:] = 1.0
+    grid = OccupancyGrid(world)
+    a, b, truth, meta = datasets.robot_views_pair(grid, [[120.0, 100.0]], [[120.0, 100.0]], rotation_deg=33.0, scale=scale, rng=0)
+    ox, oy = meta["a_offset"]
+    ya, xa = np.nonzero(a.data > 0.5)
+    pa = np.stack([xa + ox, ya + oy], axis=1).astype(float)
+    yb, xb = np.nonzero(b.data > 0.5)
+    pb = (np.stack([xb, yb, np.ones_like(xb)], axis=1) @ truth.T)[:, :2] + [ox, oy]
+
+    def depth(p):
+        # Distance from the room's inside into the nearest wall, for points of the
+        # straight parts of the walls (corners left out).
+        d = np.stack([p[:, 0], 239 - p[:, 0], p[:, 1], 199 - p[:, 1]], axis=1)
+        near = np.sort(d, axis=1)
+        straight = near[:, 1] > 20
+        return near[straight, 0]
+
+    da, db = depth(pa), depth(pb)
+    assert len(da) > 200 and len(db) > 100
+    assert da.mean() == pytest.approx(2.0)  # a sees the inner wall cells, centres 2 cells deep
+    # Coarser cells are ray-cast at their own resolution: of the cells that hold the wall's
+    # centres, those on the room's side are seen more often (0.3-0.4 cells here); the old
+    # rule put them a whole cell nearer.
+    assert db.mean() == pytest.approx(da.mean(), abs=0.5), (da.mean(), db.mean())
+
+
 def test_measure_overlap():
     a = np.zeros((10, 10), bool)
     b = np.zeros((10, 10), bool)
