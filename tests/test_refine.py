@@ -98,6 +98,50 @@ def test_refinement_never_moves_farther_than_max_shift(robots):
     assert corner_error(out, far, b.shape) <= 3.0 + 1e-9
 
 
+def test_a_candidate_of_the_coarse_correlation_converges(robots):
+    """About 15 px off at b's corners, as the wall correlation's candidates can be (its
+    cells are several pixels wide), within a wide ``max_shift``."""
+    a, b, truth = robots
+    start = SimilarityTransform(rotation=truth.rotation - 0.015, scale=truth.scale, translation=truth.translation + [-15.0, 6.0])
+    assert 10.0 < corner_error(start, truth, b.shape) < 25.0
+    refined, report = refine_direct(a, b, start, max_shift=30.0)
+    assert report.accepted
+    assert corner_error(refined, truth, b.shape) < 0.5
+    # ... and not within the default reach.
+    kept, report = refine_direct(a, b, start)
+    assert not report.accepted and kept is start
+
+
+def test_steps_stay_within_max_shift_on_noisy_maps():
+    """On noisy maps far from the truth no step runs away (undamped steps went thousands
+    of pixels off), and a refinement held back by ``max_shift`` keeps the start."""
+    from gridmerge.bench import datasets
+
+    ds = datasets.simulated(n=3, seed=3, sources=("building",), building_shapes=((360, 480),), tiers=("hard",))
+    rng = np.random.default_rng(1)
+    for c in ds:
+        if c.truth is None:
+            continue
+        truth = SimilarityTransform(np.asarray(c.truth))
+        for _ in range(4):
+            turn, r, direction = rng.uniform(-0.01, 0.01), rng.uniform(6.0, 12.0), rng.uniform(0, 2 * math.pi)
+            start = SimilarityTransform(rotation=truth.rotation + turn, scale=truth.scale, translation=truth.translation + r * np.array([math.cos(direction), math.sin(direction)]))
+            out, report = refine_direct(c.a, c.b, start, max_shift=30.0)
+            assert report.shift_px <= 30.0 + 1e-6
+            assert (out is start) == (not report.accepted)
+
+
+def test_a_refinement_held_back_by_max_shift_is_refused(robots):
+    """Stopping at the edge of ``max_shift`` would return a pose that is neither the
+    start nor where the cells lead: the start is kept."""
+    a, b, truth = robots
+    start = SimilarityTransform(rotation=truth.rotation, scale=truth.scale, translation=truth.translation + [4.0, -3.0])
+    out, report = refine_direct(a, b, start, max_shift=2.0)
+    assert not report.accepted and out is start
+    out, report = refine_direct(a, b, start, max_shift=12.0)
+    assert report.accepted and corner_error(out, truth, b.shape) < 0.5
+
+
 def test_block_fields_equal_the_dense_fields():
     rng = np.random.default_rng(0)
     d = rng.random((120, 140)).astype(np.float32)

@@ -5,7 +5,10 @@ far more evidence. :func:`refine_direct` minimises, by Gauss-Newton with Huber w
 the difference between smoothed occupancy fields of the two maps over the cells both
 know, coarse to fine (the smoothing shrinks from ``sigmas[0]`` to ``sigmas[-1]``). Only
 cells near structure (where the smoothed field has a gradient) take part, so the vast
-free areas of a map cost nothing.
+free areas of a map cost nothing. Each step is damped (Levenberg-Marquardt) until it
+lowers the Huber cost of the cells both poses put on a's known area and stays within
+``max_shift`` of the start: plain steps from a start 7-15 px off could run thousands of
+pixels away on noisy maps.
 
 The smoothed field is a normalised convolution, ``G * (p k) / G * k`` with ``k`` the known
 mask, so unknown cells never pull walls towards them.
@@ -342,6 +345,25 @@ def _level_points(b: OccupancyGrid, cache, sigma: float, factor: int):
     return _cached(cache, ("b", sigma, factor), lambda: _b_points(b, _whole(b), factor, sigma, planes=_cached_planes(b, cache, "b", factor)))
 
 
+#: Levenberg-Marquardt damping of a first try (next to the unit diagonal of the scaled
+#: normal equations: nearly a plain Gauss-Newton step) and tries per step.
+_LM_START = 1e-4
+_LM_TRIES = 8
+
+
+def _robust_cost(r: np.ndarray, keep: np.ndarray, huber: float, params: np.ndarray, prior) -> float:
+    """The cost a refinement step must not raise: Huber losses of the residuals ``r[keep]``,
+    capped at three times ``huber``, plus the scale prior's ``strength / 2 (s - s0)^2``
+    when ``prior = (strength, s0)``."""
+    cap = 2.5 * huber * huber  # the loss at 3 huber
+    a = np.abs(r[keep])
+    loss = np.where(a <= huber, 0.5 * a * a, huber * a - 0.5 * huber * huber)
+    total = float(loss.sum())
+    if prior is not None:
+        total += 0.5 * prior[0] * (math.hypot(params[0, 0], params[1, 0]) - prior[1]) ** 2
+    return total
+
+
 def prepare_fields(a: OccupancyGrid, b: OccupancyGrid, cache: dict, *, scale: float = 1.0, sigmas=(3.0, 1.5, 1.0)) -> dict:
     """Fill ``cache`` with the fields :func:`refine_direct` will need (with the same
     ``cache`` and ``sigmas``) for transforms of about ``scale``, so that they can be
@@ -388,7 +410,8 @@ def refine_direct(
     max_points : int
         Cells of b sampled per level at most (a seeded random subset beyond that).
     max_shift : float
-        A refinement that moves b's corners farther than this (a's pixels) is refused.
+        How far (a's pixels) b's corners may move. A refinement that would lead farther
+        (whose last step was held back by this bound) is refused.
     rng : int or numpy.random.Generator
         Seed of the subsampling.
     cache : dict, optional
@@ -423,6 +446,7 @@ def refine_direct(
     steps = 0
     npts = 0
     huber = 0.1
+    pinned = False
     rms_before = rms_after = math.nan
     for level, (sigma_a, fa) in enumerate(zip(sigmas, factors)):
         last = level == len(sigmas) - 1
@@ -500,6 +524,7 @@ def refine_direct(
             jn = j / norm
             h = (jn.T * w) @ jn
             g = (jn.T * w) @ rv
+            prior = None
             if s_level is not None:
                 sa0, sb0 = q_params[0, 0], q_params[1, 0]
                 s_now = math.hypot(sa0, sb0)
@@ -508,12 +533,33 @@ def refine_direct(
                 jpn = jp / norm
                 h = h + scale_prior[1] * info * np.outer(jpn, jpn)
                 g = g + scale_prior[1] * info * jpn * (s_now - s_level)
-            try:
-                delta = -np.linalg.solve(h + 1e-9 * np.eye(4), g) / norm
-            except np.linalg.LinAlgError:
+                prior = (scale_prior[1] * info, s_level)
+            # Levenberg-Marquardt: a Gauss-Newton step, damped until it lowers the robust
+            # cost (an undamped step on a field far from the truth can run away).
+            new = None
+            lam = _LM_START
+            pinned = False  # held back by max_shift: the refinement leads farther away
+            for _try in range(_LM_TRIES):
+                try:
+                    delta = -np.linalg.solve(h + (lam + 1e-9) * np.eye(4), g) / norm
+                except np.linalg.LinAlgError:
+                    break
+                sa, sb = q_params[0, 0] + delta[0], q_params[1, 0] + delta[1]
+                trial = np.array([[sa, -sb, q_params[0, 2] + delta[2]], [sb, sa, q_params[1, 2] + delta[3]], [0.0, 0.0, 1.0]])
+                # A step beyond what may be accepted in the end (the scale collapsing, all
+                # cells landing on one spot of a, lowers the cost too) is too long.
+                if _corner_shift(initial.params, from_level(trial), b.shape) > max_shift:
+                    pinned = True
+                    lam *= 8.0
+                    continue
+                _, r1, v1 = residuals(trial)
+                both = valid & v1  # compared on the cells both poses put on a's known area
+                if _robust_cost(r1, both, huber, trial, prior) <= _robust_cost(r, both, huber, q_params, prior):
+                    new = trial
+                    break
+                lam *= 8.0
+            if new is None:
                 break
-            sa, sb = q_params[0, 0] + delta[0], q_params[1, 0] + delta[1]
-            new = np.array([[sa, -sb, q_params[0, 2] + delta[2]], [sb, sa, q_params[1, 2] + delta[3]], [0.0, 0.0, 1.0]])
             steps += 1
             moved = _corner_shift(q_params, new, shape_b)
             q_params = new
@@ -527,6 +573,7 @@ def refine_direct(
     accepted = bool(
         np.isfinite(p).all()
         and shift <= max_shift
+        and not pinned
         and math.isfinite(rms_after)
         and (not math.isfinite(rms_before) or rms_after <= rms_before + 1e-9)
     )
