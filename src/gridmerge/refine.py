@@ -152,7 +152,10 @@ def _b_points(grid: OccupancyGrid, box, factor: int, sigma: float, planes=None):
     ``planes``: :func:`_planes` of the box, when already computed."""
     k, v = planes if planes is not None else _planes(grid, box, factor)
     f, gx, gy, sk = _smoothed(k, v, _level_sigma(sigma, factor))
-    ys, xs = np.nonzero((sk > 0.9) & (np.hypot(gx, gy) > 0.01) & (k > 0.5))
+    # Structure: a field changing by 0.01 per cell, or per smoothing width when wider (a
+    # thin wall blurred over many cells, as a finer map's at a's coarse levels, changes by
+    # less than 0.01 per cell).
+    ys, xs = np.nonzero((sk > 0.9) & (np.hypot(gx, gy) * max(1.0, sigma) > 0.01) & (k > 0.5))
     return xs, ys, f[ys, xs].astype(np.float64)
 
 
@@ -460,7 +463,7 @@ def refine_direct(
             pool = _cached(cache, ("b pool", sigma_b, 2), dict)
             xs, ys, target = _fine_points(a, b, p, cand[:2], 2, sigma_b, max_points, gen, pool)
             if len(xs) < 20:
-                break
+                continue  # nothing to fit at this smoothing: the next level may have
             q = np.stack([xs, ys], axis=1) @ p[:2, :2].T + p[:2, 2]
             a_box = _box_of(q, max_shift + 4.0 * sigma_a + 4.0, a.shape)
             field = _a_field(a, a_box, 1, sigma_a)
@@ -470,7 +473,7 @@ def refine_direct(
             field = _level_field(a, cache, sigma_a, fa)
             xs, ys, target = _level_points(b, cache, sigma_b, fb)
             if len(xs) < 20:
-                break
+                continue  # nothing to fit at this smoothing: the next level may have
             if len(xs) > max_points:
                 pick = np.sort(gen.choice(len(xs), max_points, replace=False))
                 xs, ys, target = xs[pick], ys[pick], target[pick]
