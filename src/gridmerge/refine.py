@@ -355,10 +355,9 @@ _LM_TRIES = 8
 
 
 def _robust_cost(r: np.ndarray, keep: np.ndarray, huber: float, params: np.ndarray, prior) -> float:
-    """The cost a refinement step must not raise: Huber losses of the residuals ``r[keep]``,
-    capped at three times ``huber``, plus the scale prior's ``strength / 2 (s - s0)^2``
-    when ``prior = (strength, s0)``."""
-    cap = 2.5 * huber * huber  # the loss at 3 huber
+    """The cost a refinement step must not raise: the Huber losses of the residuals
+    ``r[keep]`` (what the weighted steps minimise), plus the scale prior's
+    ``strength / 2 (s - s0)^2`` when ``prior = (strength, s0)``."""
     a = np.abs(r[keep])
     loss = np.where(a <= huber, 0.5 * a * a, huber * a - 0.5 * huber * huber)
     total = float(loss.sum())
