@@ -920,8 +920,9 @@ _WALL_LED_MIN_SHARED = 0.15
 _CLEAR_RATIO = 0.5
 _CLEAR_WALL = 0.5
 _CLEAR_SHARED = 0.2
-#: Rotations tried around each direction candidate by the wall-led search (degrees): the
-#: candidates of two peaks 6 degrees apart leave no gap wider than 1 degree.
+#: Rotations tried around each direction candidate by the wall-led search (degrees): with
+#: two candidates 6 degrees apart (as the direction histograms give), no rotation between
+#: them is more than 1 degree from one tried.
 _WALL_LED_FINE_DEG = (-2.0, -1.0, 0.0, 1.0, 2.0)
 #: Hypotheses of the wall-led search refined against the maps.
 _WALL_LED_REFINE_TOP = 6
