@@ -293,3 +293,21 @@ def test_unreadable_file(tmp_path):
     finally:
         os.chmod(f, 0o644)
     assert_error_names(excinfo, f)
+
+
+def test_an_interrupt_while_opening_stays_an_interrupt(tmp_path, monkeypatch):
+    """Ctrl-C right after os.fdopen made its file object (which, discarded, closes the
+    descriptor): the KeyboardInterrupt comes out, not "Bad file descriptor"."""
+    from gridmerge.io import images
+
+    path = tmp_path / "m.pgm"
+    path.write_bytes(encode_pgm(np.zeros((4, 5), np.uint8)))
+    real = os.fdopen
+
+    def interrupted(fd, *args, **kwargs):
+        real(fd, *args, **kwargs).close()  # made, then lost to the interrupt
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(images.os, "fdopen", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        read_image(path)

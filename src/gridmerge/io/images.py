@@ -290,6 +290,7 @@ def open_input(path: Path, kind: str) -> Iterator[BinaryIO]:
         raise MapFormatError(f"cannot read the file: {exc.strerror or exc}", path=path) from None
     except ValueError:  # a NUL byte or a lone surrogate in the name
         raise MapFormatError("invalid file name", path=_printable(path)) from None
+    fh = None
     try:
         mode = os.fstat(fd).st_mode
         if stat.S_ISDIR(mode):
@@ -300,7 +301,12 @@ def open_input(path: Path, kind: str) -> Iterator[BinaryIO]:
             os.set_blocking(fd, True)
         fh = os.fdopen(fd, "rb")
     except BaseException:
-        os.close(fd)
+        # A Ctrl-C can land after os.fdopen made its file object and before ``fh`` holds
+        # it: the discarded object has then closed the descriptor already, and closing it
+        # again turned the interrupt into "Bad file descriptor".
+        if fh is None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
         raise
     with fh:
         try:
