@@ -509,8 +509,9 @@ def refine_direct(
         if last:
             _, r0, v0 = residuals(to_level(initial.params))
             rms_before = robust_rms(r0, v0)
+        current = residuals(q_params)
         for _ in range(iterations):
-            q, r, valid = residuals(q_params)
+            q, r, valid = current
             if valid.sum() < 20:
                 break
             gx = _sample(gxa, q[valid]).astype(np.float64)
@@ -554,10 +555,10 @@ def refine_direct(
                     pinned = True
                     lam *= 8.0
                     continue
-                _, r1, v1 = residuals(trial)
-                both = valid & v1  # compared on the cells both poses put on a's known area
-                if _robust_cost(r1, both, huber, trial, prior) <= _robust_cost(r, both, huber, q_params, prior):
-                    new = trial
+                tried = residuals(trial)
+                both = valid & tried[2]  # compared on the cells both poses put on a's known area
+                if _robust_cost(tried[1], both, huber, trial, prior) <= _robust_cost(r, both, huber, q_params, prior):
+                    new, current = trial, tried  # the next step starts from these residuals
                     break
                 lam *= 8.0
             if new is None:
@@ -569,8 +570,7 @@ def refine_direct(
                 break
         p = from_level(q_params)
         if last:
-            _, r1, v1 = residuals(q_params)
-            rms_after = robust_rms(r1, v1)
+            rms_after = robust_rms(current[1], current[2])  # ``current``: at ``q_params``
     shift = _corner_shift(initial.params, p, b.shape)
     accepted = bool(
         np.isfinite(p).all()
