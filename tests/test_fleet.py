@@ -197,3 +197,44 @@ def test_the_same_maps_under_other_names_merge_identically(fleet):
     for s, t in zip(first.transforms, renamed.transforms):
         np.testing.assert_array_equal(s.params, t.params)
     np.testing.assert_array_equal(np.nan_to_num(first.grid.data, nan=-1), np.nan_to_num(renamed.grid.data, nan=-1))
+
+
+def test_a_pair_whose_predicted_pose_fails_is_searched(fleet, monkeypatch):
+    """With many maps only likely partners are searched first; the others that the
+    placement says overlap are verified at the predicted pose. When that pose does not
+    hold (on real maps, which bend, the graph's pose can be 20 px off), the pair has
+    never been searched: it is searched then, not given up."""
+    import dataclasses
+    import importlib
+
+    from gridmerge.transforms import corner_error
+
+    merge_module = importlib.import_module("gridmerge.merge")  # the module, not the function
+    real_reverify, real_align = merge_module.reverify, merge_module.align
+    declined, searched = [], []
+
+    def reverify(a, b, t, **kw):
+        r = real_reverify(a, b, t, **kw)
+        declined.append((a.name, b.name))
+        return dataclasses.replace(r, success=False, transform=None, confidence=0.0, message="declined: the predicted pose does not hold")
+
+    def align(a, b, **kw):
+        searched.append((a.name, b.name))
+        return real_align(a, b, **kw)
+
+    monkeypatch.setattr(merge_module, "ALL_PAIRS_UP_TO", 2)
+    monkeypatch.setattr(merge_module, "PARTNERS_PER_MAP", 1)
+    monkeypatch.setattr(merge_module, "reverify", reverify)
+    monkeypatch.setattr(merge_module, "align", align)
+    maps = [fleet.maps[k] for k in (0, 5, 7, 6, 1)]
+    m = gridmerge.merge(maps)
+    assert m.success and m.placed == list(range(5)), m.message
+    assert declined, "no pair was verified at a predicted pose"
+    # Every pair verified at a predicted pose has been searched too (before, or after
+    # its predicted pose failed), each once.
+    assert set(declined) <= set(searched) and len(set(searched)) == len(searched) == m.stats.pairs_searched
+    assert {p.how for p in m.pairs if (maps[p.i].name, maps[p.j].name) in declined} == {"search"} | (
+        {"predict"} if any(not p.success for p in m.pairs if p.how == "predict") else set())
+    for k, t in zip((0, 5, 7, 6, 1), m.transforms):
+        relative = np.linalg.inv(m.transforms[0].params) @ t.params  # robot k -> robot 1
+        assert corner_error(relative, fleet.relative(0, k), fleet.maps[k].shape) <= 2.0

@@ -621,7 +621,9 @@ class Merger:
     pairs : {"auto", "all"}
         Which pairs are searched: all, or (``"auto"``) all up to 8 maps and beyond that
         each map's 3 likeliest partners (descriptor matches), more for maps left
-        unplaced, and every pair the placement predicts to overlap (verified cheaply).
+        unplaced, and every pair the placement predicts to overlap (verified cheaply at
+        the predicted pose; searched when that pose does not hold and the pair never was:
+        real maps bend, and a pose chained through the graph can be 20 px off).
     executor : gridmerge.parallel.Executor, optional
         Where the features and pairwise alignments run (default serial).
     scale_check : {"warn", "reject", "off"}
@@ -908,11 +910,16 @@ class Merger:
             if predicted:
                 jobs = [self._job(i, j, names, feats, prior) for i, j, prior in predicted]
                 t1 = time.perf_counter()
+                unsearched = []  # the predicted pose does not hold, and the pair was never searched
                 for (i, j, _), r in zip(predicted, self._run("pairs", _run_pair, jobs)):
+                    if not r.success and (i, j) not in results:
+                        unsearched.append((i, j))
+                        continue
                     r.details["predicted"] = True
                     results[(i, j)] = self._store(names, i, j, r, "predict")
                 stats.align_s += time.perf_counter() - t1
                 stats.pairs_predicted += len(predicted)
+                self._search(names, feats, unsearched, results, stats)
                 poses, report, warnings = self._solve(maps, names, results, reference)
 
         result = self._fuse(maps, names, results, poses, report, warnings, reference, stats)
