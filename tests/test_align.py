@@ -231,3 +231,29 @@ def test_scale_prior_pulls_a_simulated_merge_to_the_resolution_ratio(shared_data
     assert abs(with_prior.transform.scale - ratio) < abs(without.transform.scale - ratio)
     assert corner_error(with_prior.transform, case.truth, case.b.shape) < 1.0
     assert corner_error(without.transform, case.truth, case.b.shape) < 2.0
+
+
+def test_a_pose_turned_about_the_overlap_is_no_rival():
+    """Turned 6 degrees about the shared part, a pose moves b's far corners well beyond
+    40 px but the shared part little: the same merge for maps that bend, not another
+    answer. Shifted by 60 px it is one."""
+    from gridmerge.align import AlignOptions, _Judge
+
+    a, b, truth = samples.robot_pair(0)
+    best = SimilarityTransform(truth)
+    judge = _Judge(a, b, AlignOptions(), np.random.default_rng(0))
+    # The centre of the part of b that lands on a's known cells, in a's pixels.
+    cells = np.argwhere(b.known)[:, ::-1].astype(float)
+    p = best(cells)
+    inside = (p[:, 0] >= 0) & (p[:, 0] < a.width - 1) & (p[:, 1] >= 0) & (p[:, 1] < a.height - 1)
+    p = p[inside]
+    p = p[a.known[np.rint(p[:, 1]).astype(int), np.rint(p[:, 0]).astype(int)]]
+    cx, cy = np.median(p, axis=0)
+    c, s = math.cos(math.radians(6.0)), math.sin(math.radians(6.0))
+    turn = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
+    turned = SimilarityTransform(turn @ best.params)
+    shifted = SimilarityTransform(best.params + np.array([[0, 0, 60.0], [0, 0, 0], [0, 0, 0]]))
+    assert judge.far_apart(best, turned, 40.0) and judge.far_apart(best, shifted, 40.0)
+    assert not judge.rival(best, turned)
+    assert judge.rival(best, shifted)
+    assert not judge.rival(best, best)

@@ -542,6 +542,7 @@ class _Judge:
         self._quick: dict = {}
         self._memo: dict = {}
         self._verified: dict = {}
+        self._known_b: np.ndarray | None = None  # a sample of b's known cells (rival)
 
     def prepare(self) -> None:
         """What every candidate will need: the wall scorer, and the refinement's fields
@@ -612,6 +613,27 @@ class _Judge:
     def far_apart(self, s: AffineTransform, t: AffineTransform, px: float) -> bool:
         return bool(np.hypot(*(s(self.box) - t(self.box)).T).max() >= px)
 
+    def rival(self, best: AffineTransform, t: AffineTransform) -> bool:
+        """Whether ``t`` is another answer than ``best``: clearly apart at b's corners, and
+        moving the part of b that ``best`` lays on a's known cells by at least
+        :data:`_RIVAL_OVERLAP_PX` (median). A pose turned a few degrees about the overlap
+        moves b's far corners a lot but the shared part little: with maps that bend, it
+        scores nearly as well without being a different merge."""
+        if not self.far_apart(best, t, _OTHER_POSE_PX):
+            return False
+        if self._known_b is None:
+            cells = np.argwhere(self.b.known)[:, ::-1].astype(float)
+            self._known_b = cells[:: max(1, len(cells) // _RIVAL_CELLS)]
+        p = self._known_b @ best.params[:2, :2].T + best.params[:2, 2]
+        h, w = self.a.shape
+        on = (p[:, 0] >= 0) & (p[:, 0] < w - 0.5) & (p[:, 1] >= 0) & (p[:, 1] < h - 0.5)
+        idx = np.rint(p[on]).astype(np.int64)
+        on[on] = self.a.known[idx[:, 1], idx[:, 0]]
+        if not on.any():
+            return True
+        q = self._known_b[on] @ t.params[:2, :2].T + t.params[:2, 2]
+        return bool(np.median(np.hypot(*(q - p[on]).T)) >= _RIVAL_OVERLAP_PX)
+
     def decide(self, candidates: list[tuple[AffineTransform, str]], *, weighed: bool = False, rivals=()):
         """``(score, best, kind, runner_up, verification)`` of the best candidate.
 
@@ -635,9 +657,9 @@ class _Judge:
         chosen.sort(key=lambda c: -c[0])
         value, best, kind = chosen[0]
         # The best score of a clearly different pose: repeated structure makes it close to the best.
-        others = [w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)]
-        others += [c[0] for c in chosen[1:] if self.far_apart(best, c[1], _OTHER_POSE_PX)]
-        others += [score(t) for t in rivals if self.far_apart(best, t, _OTHER_POSE_PX)]
+        others = [w for w, t, _ in scored if self.rival(best, t)]
+        others += [c[0] for c in chosen[1:] if self.rival(best, c[1])]
+        others += [score(t) for t in rivals if self.rival(best, t)]
         runner_up = max(others, default=0.0)
         return value, best, kind, runner_up, self._verify(best)
 
@@ -943,6 +965,13 @@ _MIN_SHARED = 0.05
 _SAME_POSE_PX = 10.0
 #: ... and farther than this, two clearly different poses (for the ambiguity check).
 _OTHER_POSE_PX = 40.0
+#: A clearly different pose is a rival of the best only when it moves the part of b the
+#: best lays on a by this much (median, a's pixels): less is the same merge up to the
+#: bending of real maps (hand fits of the Halmstad pairs leave 5-15 px; its protocol
+#: tolerates 20 px).
+_RIVAL_OVERLAP_PX = 25.0
+#: b's known cells sampled for that median.
+_RIVAL_CELLS = 3000
 
 
 def _extract_both(ext_a: FeatureExtractor, ext_b: FeatureExtractor, a: OccupancyGrid, b: OccupancyGrid):
