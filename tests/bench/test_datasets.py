@@ -220,7 +220,7 @@ def test_default_data_dir_is_next_to_the_project():
 @pytest.mark.shared
 def test_halmstad_pairs(shared_data):
     ds = datasets.halmstad(shared_data)
-    assert len(ds) == 115  # E5: 91 sensor + 14 layout; HIH: 6 + 4
+    assert len(ds) == 115 + 56  # E5: 91 sensor + 14 layout; HIH: 6 + 4; 14 x 4 cross pairs
     first = ds[0]
     assert first.dataset == "halmstad" and first.id == "halmstad/E5_01-E5_02"
     m = first.meta
@@ -230,10 +230,29 @@ def test_halmstad_pairs(shared_data):
     # The annotation's own fit passes the protocol.
     assert halmstad_point_error(first.truth, m["points_a"], m["points_b"]) == pytest.approx(m["fit_median_residual_px"], abs=0.05)
     assert judge(first.truth, first.truth, first.b.shape, positive=True, protocol=m)["success"]
-    last = ds[len(ds) - 1]
+    last = ds[114]
     assert last.dataset == "halmstad-layout" and last.meta["kind"] == "layout"
     quick = datasets.load("halmstad", quick=True, data_dir=shared_data)
-    assert [c.dataset for c in quick] == ["halmstad"] * 4 + ["halmstad-layout"] * 2
+    assert [c.dataset for c in quick] == ["halmstad"] * 4 + ["halmstad-layout"] * 2 + ["halmstad-cross"]
+
+
+@pytest.mark.shared
+def test_halmstad_cross_building_pairs_are_negatives(shared_data):
+    """Every E5 sensor map against every HIH one, once: real maps of two buildings."""
+    ds = datasets.halmstad(shared_data, kinds=("cross",))
+    assert len(ds) == 14 * 4
+    cases = [ds[k] for k in range(len(ds))]
+    pairs = {frozenset((c.meta["map_a"], c.meta["map_b"])) for c in cases}
+    assert len(pairs) == 56
+    for c in cases:
+        assert c.dataset == "halmstad-cross" and not c.positive and c.truth is None and c.meta["tier"] == "negative"
+        envs = {c.meta["map_a"].split("_")[0], c.meta["map_b"].split("_")[0]}
+        assert envs == {"E5", "HIH"}
+        assert c.a.known.any() and c.b.known.any()
+    # Either building's maps on either side.
+    assert {c.meta["map_a"][:2] for c in cases} == {"E5", "HI"}
+    # Only with both buildings.
+    assert len(datasets.halmstad(shared_data, kinds=("cross",), environments=("E5",))) == 0
 
 
 @pytest.mark.shared

@@ -821,23 +821,29 @@ def _world_cached_pair(name: str, data_key: Optional[str]) -> _World:
 def halmstad(
     data_dir=None,
     *,
-    kinds: Sequence[str] = ("sensor", "layout"),
+    kinds: Sequence[str] = ("sensor", "layout", "cross"),
     environments: Sequence[str] = ("E5", "HIH"),
     limit: Optional[int] = None,
 ) -> Dataset:
-    """The annotated real pairs of the Halmstad data set.
+    """The annotated real pairs of the Halmstad data set, and real negative pairs.
 
     Sensor pairs (two Tango maps) are data set ``"halmstad"``; layout pairs (a sensor map
-    against the RGBA blueprint) ``"halmstad-layout"``, reported separately.
+    against the RGBA blueprint) ``"halmstad-layout"``, reported separately. Cross pairs
+    (``"halmstad-cross"``, with both environments) are negatives: a sensor map of E5 (a
+    university building) against one of HIH (an apartment), every combination, the
+    even-numbered E5 maps as map b. Maps of two different buildings must not be merged;
+    they are real maps, with the noise, bending and room shapes that the simulated
+    negatives lack.
 
     Parameters
     ----------
     data_dir : path, optional
         The shared data folder (default: :func:`default_data_dir`).
-    kinds : sequence of {"sensor", "layout"}
+    kinds : sequence of {"sensor", "layout", "cross"}
     environments : sequence of {"E5", "HIH"}
     limit : int, optional
-        At most this many pairs of each kind and environment (the first ones).
+        At most this many pairs of each kind and environment (the first ones); at most
+        this many cross pairs.
 
     Returns
     -------
@@ -846,6 +852,8 @@ def halmstad(
         fit (3x3); ``meta``: ``environment``, ``kind``, ``map_a``, ``map_b``,
         ``points_a``, ``points_b``, ``fit_median_residual_px`` and the protocol's
         ``threshold_px = max(20, 2 * fit_median_residual_px)``, ``protocol = "halmstad"``.
+        Cross cases ``"halmstad-cross/E5_01-HIH_01"`` ...: ``truth`` ``None``, tier
+        ``"negative"``.
 
     Raises
     ------
@@ -873,10 +881,21 @@ def halmstad(
             entries.append((env, p))
     # Sensor pairs first, then layout pairs (keeps the file order within each).
     entries.sort(key=lambda e: 0 if e[1].get("kind", "sensor") == "sensor" else 1)
+    if "cross" in kinds and {"E5", "HIH"} <= set(environments):
+        e5 = sorted(p.stem for p in (root / "E5").glob("E5_[0-9]*.png"))
+        hih = sorted(p.stem for p in (root / "HIH").glob("HIH_[0-9]*.png"))
+        cross = [(m, h) if int(m[3:]) % 2 else (h, m) for m in e5 for h in hih]
+        entries += [("cross", {"kind": "cross", "a": a, "b": b}) for a, b in cross[:limit]]
     root_s = str(root)
 
     def build(k: int) -> Case:
         env, p = entries[k]
+        if env == "cross":
+            a = _halmstad_map(root_s, p["a"].split("_")[0], p["a"])
+            b = _halmstad_map(root_s, p["b"].split("_")[0], p["b"])
+            meta = {"tier": "negative", "environment": "E5+HIH", "kind": "cross", "map_a": p["a"], "map_b": p["b"],
+                    "negative_kind": "different-buildings", "source": "halmstad:E5+HIH"}
+            return Case(f"halmstad-cross/{p['a']}-{p['b']}", "halmstad-cross", a, b, None, False, meta)
         kind = p.get("kind", "sensor")
         a = _halmstad_map(root_s, env, p["a"])
         b = _halmstad_map(root_s, env, p["b"])
@@ -946,8 +965,9 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     """A data set by name, with the benchmark's default sizes.
 
     ``simulated``: ``n`` cases (default 60; 6 with ``quick``); ``halmstad``: every
-    annotated pair (with ``quick``: the first 2 sensor pairs and the first layout pair of
-    E5 and of HIH), or the first ``n`` of each kind and environment; ``paper``: seeds 0-4
+    annotated pair and every cross-building negative (with ``quick``: the first 2 sensor
+    pairs and the first layout pair of E5 and of HIH, and one cross pair), or the first
+    ``n`` of each kind and environment; ``paper``: seeds 0-4
     (seed 0 with ``quick``).
 
     Raises
@@ -961,7 +981,8 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
         if quick:
             sensor = halmstad(data_dir, kinds=("sensor",), limit=2)
             layout = halmstad(data_dir, kinds=("layout",), limit=1)
-            return _concat("halmstad", [sensor, layout])
+            cross = halmstad(data_dir, kinds=("cross",), limit=1)
+            return _concat("halmstad", [sensor, layout, cross])
         return halmstad(data_dir, limit=n)
     if name == "paper":
         return paper((0,) if quick else tuple(range(5)))
