@@ -622,8 +622,11 @@ class _Judge:
         if not self.far_apart(best, t, _OTHER_POSE_PX):
             return False
         if self._known_b is None:
-            cells = np.argwhere(self.b.known)[:, ::-1].astype(float)
-            self._known_b = cells[:: max(1, len(cells) // _RIVAL_CELLS)]
+            # About _RIVAL_CELLS of them, on a regular grid: no list of all known cells
+            # (a 3000 x 3000 map of noise has 9 million).
+            known = self.b.known
+            step = max(1, int(math.sqrt(np.count_nonzero(known) / _RIVAL_CELLS)))
+            self._known_b = np.argwhere(known[::step, ::step])[:, ::-1].astype(float) * step
         p = self._known_b @ best.params[:2, :2].T + best.params[:2, 2]
         h, w = self.a.shape
         on = (p[:, 0] >= 0) & (p[:, 0] < w - 0.5) & (p[:, 1] >= 0) & (p[:, 1] < h - 0.5)
