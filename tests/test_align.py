@@ -257,3 +257,23 @@ def test_a_pose_turned_about_the_overlap_is_no_rival():
     assert not judge.rival(best, turned)
     assert judge.rival(best, shifted)
     assert not judge.rival(best, best)
+
+
+@pytest.mark.parametrize("method", ["hybrid", "sift"])
+def test_a_scale_the_resolutions_rule_out_is_declined_unless_any_scale(method):
+    """b's resolution says 0.1 m/cell where it is really 0.05: the maps' metadata says
+    scale 2, their cells about 1. By default no pose that far from the resolutions is
+    accepted, and the message says why and what to do; with
+    ``max_scale_disagreement=None`` the cells' scale is taken and the merge is right."""
+    from gridmerge.align import _scale_disagreement
+
+    a, b, truth = samples.robot_pair(0)
+    liar = b.replace(resolution=2 * b.resolution)
+    r = align(a, liar, rng=0, method=method)
+    assert not r.success and "--any-scale" in r.message
+    # The cells' pose is found, and declined for its scale alone.
+    assert corner_error(r.candidate, truth, b.shape) < 1.0 and _scale_disagreement(r.candidate, a, liar) > 0.9
+    free = align(a, liar, rng=0, method=method, max_scale_disagreement=None)
+    assert free.success and corner_error(free.transform, truth, b.shape) < 1.0
+    # With its true resolution, the same map merges by default.
+    assert align(a, b, rng=0, method=method).success

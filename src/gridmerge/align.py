@@ -144,6 +144,18 @@ class AlignOptions:
         Not the default: on the Halmstad Tango maps it merged 3 more pairs but placed the
         14-map E5 fleet worse (76 instead of 81 of 91 annotated pairs right); see
         docs/benchmarks.md.
+    max_scale_disagreement : float or None
+        Decline a pose whose scale disagrees with the maps' resolution ratio by more than
+        this fraction (0.15: outside 0.87-1.15 times the ratio; the ratio is b's
+        resolution over a's, the scale the maps' own metadata gives). SLAM maps know
+        their resolution: the Halmstad Tango maps drift against each other by at most
+        5 % (annotated scales 0.95-1.04) and the simulated robots' metadata is exact,
+        while real maps of two different buildings were merged at scales 0.85 and 2 to 3
+        (4 of the 11 false merges of the Halmstad cross-building pairs). Such poses are
+        still searched, and compete as rivals: without them, other wrong poses win more
+        clearly (measured). ``None`` accepts any scale within ``min_scale`` and
+        ``max_scale``, for maps whose resolutions are unknown or wrong (CLI
+        ``--any-scale``).
     wall_led : bool
         ``"hybrid"``: when the first, overlap-seeking wall search gives no confident pose,
         search again with the wall-led correlation (:mod:`gridmerge.correlate`), which
@@ -175,6 +187,7 @@ class AlignOptions:
     feature_pixels: int = 400_000
     keypoints_first: float = 0.9
     scale_prior: float = 0.0
+    max_scale_disagreement: float | None = 0.15
     wall_led: bool = True
 
 
@@ -414,6 +427,15 @@ def _scale_ok(opts: AlignOptions) -> Callable[[AffineTransform], bool]:
         return opts.min_scale <= sx <= opts.max_scale and opts.min_scale <= sy <= opts.max_scale
 
     return ok
+
+
+def _scale_disagreement(t: AffineTransform, a: OccupancyGrid, b: OccupancyGrid) -> float:
+    """How far ``t``'s scale is from the maps' resolution ratio, as a fraction (0.15:
+    1.15 times the ratio, or 1 / 1.15 of it)."""
+    s = t.scale
+    if not (math.isfinite(s) and s > 0):
+        return math.inf
+    return math.expm1(abs(math.log(s * a.resolution / b.resolution)))
 
 
 def _correspondences(fa: Features, fb: Features, pairs: np.ndarray):
@@ -896,7 +918,8 @@ def align(
         if spec.verified:
             by_structure = est.confidence is not None
             conf = float(est.confidence) if by_structure else _confidence(n_inl, v, est.transform.min_samples)
-            message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure)
+            message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure,
+                                      scale_off=_scale_disagreement(est.transform, a, b))
         else:
             conf = float(est.confidence or 0.0)
             message = "" if est.success else (est.message or "declined by the method's own rule")
@@ -1016,7 +1039,13 @@ def _shifted(f: Features, offset: np.ndarray) -> Features:
     return f if not offset.any() else replace(f, xy=f.xy + offset)
 
 
-def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool = True) -> str:
+def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool = True,
+                    scale_off: float = 0.0) -> str:
+    """Why a verified pose is declined ("" when it is not); ``scale_off``: its scale's
+    disagreement with the maps' resolution ratio (:func:`_scale_disagreement`)."""
+    if opts.max_scale_disagreement is not None and scale_off > opts.max_scale_disagreement * (1 + 1e-9):
+        return (f"declined: the scale disagrees with the maps' resolutions by {scale_off:.0%} "
+                f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
     if need_inliers and inliers < opts.min_inliers:
         return f"declined: only {inliers} inlier matches (need {opts.min_inliers})"
     if v.overlap_cells < opts.min_overlap_cells:

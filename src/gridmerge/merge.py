@@ -46,6 +46,7 @@ from .align import (
     AlignResult,
     _decline_reason,
     _full_wall,
+    _scale_disagreement,
     _structural_confidence,
     align,
     crop_to_full,
@@ -479,7 +480,7 @@ def reverify(
             t, shift = refined, float(report.shift_px)
     v = verify(ca, cb, t, tolerance=opts.wall_tolerance)
     conf = min(float(max_confidence), _structural_confidence(_full_wall(v), runner_up_ratio))
-    message = _decline_reason(0, v, conf, opts, need_inliers=False)
+    message = _decline_reason(0, v, conf, opts, need_inliers=False, scale_off=_scale_disagreement(t, ca, cb))
     full = crop_to_full(t, oa, ob)
     ok = not message
     return AlignResult(

@@ -232,6 +232,8 @@ def test_halmstad_pairs(shared_data):
     assert judge(first.truth, first.truth, first.b.shape, positive=True, protocol=m)["success"]
     last = ds[114]
     assert last.dataset == "halmstad-layout" and last.meta["kind"] == "layout"
+    # A blueprint's pixel size against the Tango maps' is not known; theirs is one.
+    assert not last.meta["resolutions_known"] and first.meta["resolutions_known"]
     quick = datasets.load("halmstad", quick=True, data_dir=shared_data)
     assert [c.dataset for c in quick] == ["halmstad"] * 4 + ["halmstad-layout"] * 2 + ["halmstad-cross"]
 

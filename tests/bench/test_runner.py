@@ -107,6 +107,21 @@ def test_a_failing_method_is_recorded_not_fatal(tmp_path, monkeypatch):
     assert r.row("boom", "paper")["errors"] == 1
 
 
+def test_a_case_whose_resolutions_are_unknown_is_aligned_at_any_scale(monkeypatch):
+    """Layout pairs (a blueprint of unknown pixel size) say ``resolutions_known: False``;
+    the runner then aligns them as a user would with --any-scale."""
+    from gridmerge import samples
+
+    a, b, truth = samples.robot_pair(0)
+    liar = b.replace(resolution=2 * b.resolution)  # a resolution that does not hold
+    known = datasets.Case("t/known", "t", a, liar, truth, True, {"tier": "t"})
+    unknown = datasets.Case("t/unknown", "t", a, liar, truth, True, {"tier": "t", "resolutions_known": False})
+    declined, _, _, _ = runner._align_measured(known, "hybrid", 0, False)
+    aligned, _, _, _ = runner._align_measured(unknown, "hybrid", 0, False)
+    assert not declined.success and "--any-scale" in declined.message
+    assert aligned.success
+
+
 # ------------------------------------------------------------------------ CLI
 def _parser():
     common = argparse.ArgumentParser(add_help=False)

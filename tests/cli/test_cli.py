@@ -337,6 +337,12 @@ def runs(sample_maps, tmp_path_factory):
     runner.add("merge", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png", "--json", "--fusion", "average", "--resolution", "0.1"], folder("merge"))
     runner.add("align-json", ["align", "a.yaml", "b.yaml", "--json"], sample_maps.folder)
     runner.add("align-trust", ["align", "a.yaml", "b.yaml", "--json", "--trust-resolution"], sample_maps.folder)
+    liar = folder("liar")  # b.yaml's resolution twice what its cells are
+    text = (liar / "b.yaml").read_text()
+    assert "resolution: 0.095" in text
+    (liar / "b.yaml").write_text(text.replace("resolution: 0.095", "resolution: 0.19"))
+    runner.add("align-liar", ["align", "a.yaml", "b.yaml"], liar)
+    runner.add("align-liar-any", ["align", "a.yaml", "b.yaml", "--json", "--any-scale"], liar)
     for fusion in OTHER_FUSIONS:
         runner.add(f"fusion-{fusion}", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--fusion", fusion, "--json", "--resolution", "0.1"], folder(f"fusion-{fusion}"))
     runner.add("merge-raw", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--save-mode", "raw", "--resolution", "0.1"], folder("merge-raw"))
@@ -467,6 +473,18 @@ def test_trust_resolution_pulls_the_metric_scale_to_one(runs, sample_maps):
     assert abs(trusted["scale"] - 1.0) < abs(free["scale"] - 1.0)
     a, b, truth = sample_maps.a, sample_maps.b, sample_maps.truth
     assert metric_error(trusted, a, b, truth) <= metric_error(free, a, b, truth) + 1e-3
+
+
+def test_a_resolution_that_contradicts_the_cells_is_declined_unless_any_scale(runs):
+    proc = runs.get("align-liar").result
+    assert proc.returncode == 1, describe(proc)
+    assert "--any-scale" in proc.stdout + proc.stderr and "Traceback" not in proc.stderr
+    free = runs.get("align-liar-any").result
+    assert free.returncode == 0, describe(free)
+    d = parse_json(free)
+    # The cells' scale (0.95), not the resolutions' (1.9); so the metric scale is 0.5.
+    assert d["success"] and d["transform"]["scale"] == pytest.approx(0.95, abs=0.01)
+    assert d["metric"]["scale"] == pytest.approx(0.5, abs=0.01)
 
 
 def test_align_text(runs):

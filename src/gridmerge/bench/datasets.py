@@ -851,8 +851,9 @@ def halmstad(
         Cases ``"halmstad/E5_01-E5_02"`` ...; ``truth`` is the annotation's least-median
         fit (3x3); ``meta``: ``environment``, ``kind``, ``map_a``, ``map_b``,
         ``points_a``, ``points_b``, ``fit_median_residual_px`` and the protocol's
-        ``threshold_px = max(20, 2 * fit_median_residual_px)``, ``protocol = "halmstad"``.
-        Cross cases ``"halmstad-cross/E5_01-HIH_01"`` ...: ``truth`` ``None``, tier
+        ``threshold_px = max(20, 2 * fit_median_residual_px)``, ``protocol = "halmstad"``,
+        ``resolutions_known`` (``False`` for layout pairs: the benchmark aligns them
+        with ``max_scale_disagreement=None``). Cross cases ``"halmstad-cross/E5_01-HIH_01"`` ...: ``truth`` ``None``, tier
         ``"negative"``.
 
     Raises
@@ -916,6 +917,9 @@ def halmstad(
             "rotation_deg": fit_rot,
             "scale": float(math.hypot(fit[0, 0], fit[1, 0])),
             "source": f"halmstad:{env}",
+            # The Tango maps share one (unstated) pixel size; a blueprint's against them
+            # is unknown, so layout pairs are aligned at any scale (CLI --any-scale).
+            "resolutions_known": kind == "sensor",
         }
         dataset = "halmstad" if kind == "sensor" else "halmstad-layout"
         return Case(f"{dataset}/{p['a']}-{p['b']}", dataset, a, b, fit, True, meta)

@@ -176,7 +176,9 @@ def _align_measured(case, method: str, seed: int, memory: bool):
     result = None
     t0 = time.perf_counter()
     try:
-        result = align(case.a, case.b, method=method, rng=seed)
+        # A map whose resolution is unknown (a blueprint) is aligned as a user would: at any scale.
+        overrides = {} if case.meta.get("resolutions_known", True) else {"max_scale_disagreement": None}
+        result = align(case.a, case.b, method=method, rng=seed, **overrides)
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as exc:  # noqa: BLE001 - a failing method is a result, not the end of the run

@@ -130,6 +130,12 @@ def _parser() -> argparse.ArgumentParser:
         help="the maps' resolutions are exact (laser SLAM maps): refine the scale towards their ratio "
         "for more precise merges (AlignOptions.scale_prior = 4)",
     )
+    common.add_argument(
+        "--any-scale",
+        action="store_true",
+        help="the maps' resolutions are unknown or wrong: accept any scale between them, not only "
+        "within 15 %% of their resolutions' ratio (AlignOptions.max_scale_disagreement = None)",
+    )
     common.add_argument("--json", action="store_true", help="print the result as one JSON object")
     _add_limits(common)
 
@@ -259,12 +265,20 @@ def _capped_note(result, limits: Limits) -> str:
     )
 
 
+def _scale_options(args) -> dict:
+    """AlignOptions of --trust-resolution and --any-scale."""
+    out: dict = {"scale_prior": _SCALE_PRIOR if args.trust_resolution else 0.0}
+    if args.any_scale:
+        out["max_scale_disagreement"] = None
+    return out
+
+
 def _cmd_align(args) -> int:
     limits = _limits(args)
     a, b = _load_all([args.a, args.b], args.image_resolution, limits)
     extractor = extractor_for(args.method, limits)
     r = align(a, b, method=args.method, rng=args.seed, max_keypoints=limits.max_keypoints, extractor=extractor,
-              scale_prior=_SCALE_PRIOR if args.trust_resolution else 0.0)
+              **_scale_options(args))
     if args.json:
         _print_json(r.to_dict())
         return EXIT_OK if r.success else EXIT_DECLINED
@@ -375,7 +389,7 @@ def _cmd_merge(args) -> int:
         result = merge(
             maps, method=args.method, fusion=args.fusion, rng=args.seed, limits=limits, names=names,
             reference=reference, resolution=args.resolution, pairs=args.pairs, scale_check=args.scale_check,
-            executor=executor, progress=progress, scale_prior=_SCALE_PRIOR if args.trust_resolution else 0.0,
+            executor=executor, progress=progress, **_scale_options(args),
         )
     if result.success:
         if args.out_bag:
