@@ -364,53 +364,44 @@ def _add_noise(data: np.ndarray, noise: float, rng: np.random.Generator) -> np.n
     return out
 
 
-def _world_in_frame(world: OccupancyGrid, M: np.ndarray, shape: tuple, scale: float) -> OccupancyGrid:
-    """The world as a robot with cells ``scale`` times the world's sees it, in its frame.
+def _observed_in_frame(seen: np.ndarray, M: np.ndarray, shape: tuple, scale: float) -> np.ndarray:
+    """What a robot observed (``seen``, the world's cells: free 0, occupied 1, unknown
+    NaN), as its own map with cells ``scale`` times the world's, in its frame.
 
-    ``M`` maps the robot's pixels to the world's. A wall is where the centre of a world
-    wall cell is, whatever the resolution, as for robot a (whose cells are the world's):
-    a robot's coarser cell is occupied when it holds the centre of a world wall cell, or
-    the midpoint between two neighbouring ones (so that a wall stays 8-connected and no
-    ray slips through it); a finer cell when its centre lies in a world wall cell. A cell
-    is unknown when the world is unknown at its centre (and it holds no wall), free
-    otherwise. (The robot then scans this at its own resolution, where the cells on the
-    room's side of a wall are seen a little more often than those behind: its walls, as
-    seen, lie up to about 0.4 world cells nearer the scanner than robot a's.)
+    ``M`` maps the robot's pixels to the world's. The robot ray-casts at the world's
+    resolution, as robot a does, and its map keeps a wall where the centre of an
+    observed wall cell is: a coarser cell is occupied when it holds one, a finer cell
+    when its centre lies in one. A cell is free when its centre lies in an observed free
+    cell (and it holds no wall), unknown otherwise. Robot b's walls are then where
+    robot a's are, whatever the resolution: the true transform is the best fit of the
+    two maps.
 
-    (Until 2026-11-29 a coarser cell was occupied when any part of a wall cell fell in
-    it. That put a coarser robot's walls half a world cell nearer the viewer than robot
-    a's, so that the true transform was not the best fit of the two maps: a perfect
-    aligner was off by up to 0.6 % in scale, 1-6 pixels at b's corners.)
+    (Until 2026-11-29, the robot ray-cast the world carried into its frame at its own
+    resolution. A coarser robot's walls lay half a world cell nearer the scanner, later
+    0.3-0.4 cells, and a perfect aligner was off by up to 0.6 % in scale, 1-6 px at b's
+    corners.)
     """
     H, W = shape
-    occ = world.occupied().astype(np.uint8)
-    known = world.known.astype(np.uint8)
-    flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
-    kw = dict(flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    with np.errstate(invalid="ignore"):
+        occ = (seen > 0.5).astype(np.uint8)
+        free = (seen < 0.5).astype(np.uint8)
+    kw = dict(flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     M2 = np.ascontiguousarray(M[:2])
-    k_out = cv2.warpAffine(known, M2, (W, H), **kw) > 0
+    f_out = cv2.warpAffine(free, M2, (W, H), **kw) > 0
     if scale <= 1.0:
         o_out = cv2.warpAffine(occ, M2, (W, H), **kw) > 0
     else:
         ys, xs = np.nonzero(occ)
-        Hw, Ww = occ.shape
-        points = [np.stack([xs, ys], axis=1).astype(np.float64)]
-        for dx, dy in ((1, 0), (0, 1), (1, 1), (1, -1)):
-            nx, ny = xs + dx, ys + dy
-            inside = (nx < Ww) & (ny >= 0) & (ny < Hw)
-            pair = np.zeros(xs.shape, bool)
-            pair[inside] = occ[ny[inside], nx[inside]] > 0
-            points.append(np.stack([xs[pair] + dx / 2.0, ys[pair] + dy / 2.0], axis=1))
-        p = np.concatenate(points)
+        p = np.stack([xs, ys], axis=1).astype(np.float64)
         Minv = np.linalg.inv(M)
         q = np.rint(p @ Minv[:2, :2].T + Minv[:2, 2]).astype(np.int64)
         ok = (q[:, 0] >= 0) & (q[:, 0] < W) & (q[:, 1] >= 0) & (q[:, 1] < H)
         o_out = np.zeros((H, W), dtype=bool)
         o_out[q[ok, 1], q[ok, 0]] = True
     data = np.full((H, W), np.nan, dtype=np.float32)
-    data[k_out] = 0.0
+    data[f_out] = 0.0
     data[o_out] = 1.0
-    return OccupancyGrid(data, resolution=world.resolution * scale)
+    return data
 
 
 def _crop_box(known: np.ndarray, margins) -> tuple[int, int, int, int]:
@@ -440,13 +431,10 @@ def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg
     pmin = p.min(axis=1) - pad
     M = A @ _shift(pmin[0], pmin[1])  # b canvas pixels -> source pixels
     shape = (int(math.ceil(p[1].max() - pmin[1] + pad)) + 1, int(math.ceil(p[0].max() - pmin[0] + pad)) + 1)
-    wb_frame = _world_in_frame(wb.grid, M, shape, scale)
-    Minv = np.linalg.inv(M)
-    vb = (np.c_[np.asarray(vps_b, float), np.ones(len(vps_b))] @ Minv.T)[:, :2]
-    b_full = samples.explore(wb_frame, vb, max_range_px=RANGE_PX / scale)
-    kb = b_full.known
+    b_full = _observed_in_frame(wb.seen(vps_b), M, shape, scale)
+    kb = ~np.isnan(b_full)
     bx0, by0, bx1, by1 = _crop_box(kb, rng.integers(5, 21, size=4))
-    b_clean = b_full.data[by0:by1, bx0:bx1]
+    b_clean = b_full[by0:by1, bx0:bx1]
     M = M @ _shift(bx0, by0)
     b_data = _add_noise(b_clean, noise, rng)
     b = OccupancyGrid(b_data, resolution=wb.grid.resolution * scale)
