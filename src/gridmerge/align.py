@@ -630,7 +630,21 @@ class _Judge:
             best = self._refined({}, best, rng=_side_generator(self.rng))
             wall = self.quick(best)
         runner_up = max((w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)), default=0.0)
+        runner_up = max(runner_up, self.shifted(best, self.quick))
         return wall, best, kind, runner_up, self._verify(best)
+
+    def shifted(self, t: AffineTransform, score) -> float:
+        """The best ``score`` of ``t`` shifted by :data:`_OTHER_POSE_PX` in any of
+        :data:`_SHIFT_DIRECTIONS` directions: the nearest clearly different poses, which
+        the candidates need not include. A pose held by structure that does not fix it
+        (one straight wall, a corridor, a room matched into a larger open space) scores
+        nearly as well shifted along it."""
+        best = 0.0
+        for k in range(_SHIFT_DIRECTIONS):
+            angle = 2.0 * math.pi * k / _SHIFT_DIRECTIONS
+            move = np.array([[1.0, 0.0, _OTHER_POSE_PX * math.cos(angle)], [0.0, 1.0, _OTHER_POSE_PX * math.sin(angle)], [0.0, 0.0, 1.0]])
+            best = max(best, score(AffineTransform(move @ t.params)))
+        return best
 
     def far_apart(self, s: AffineTransform, t: AffineTransform, px: float) -> bool:
         return bool(np.hypot(*(s(self.box) - t(self.box)).T).max() >= px)
@@ -685,6 +699,7 @@ class _Judge:
         others = [w for w, t, _ in scored if self.rival(best, t)]
         others += [c[0] for c in chosen[1:] if self.rival(best, c[1])]
         others += [score(t) for t in rivals if self.rival(best, t)]
+        others.append(self.shifted(best, score))
         runner_up = max(others, default=0.0)
         return value, best, kind, runner_up, self._verify(best)
 
@@ -991,6 +1006,8 @@ _MIN_SHARED = 0.05
 _SAME_POSE_PX = 10.0
 #: ... and farther than this, two clearly different poses (for the ambiguity check).
 _OTHER_POSE_PX = 40.0
+#: Directions in which the best pose is shifted by _OTHER_POSE_PX to look for a rival.
+_SHIFT_DIRECTIONS = 24
 #: A clearly different pose is a rival of the best only when it moves the part of b the
 #: best lays on a by this much (median, a's pixels): less is the same merge up to the
 #: bending of real maps (hand fits of the Halmstad pairs leave 5-15 px; its protocol
