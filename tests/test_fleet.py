@@ -165,13 +165,19 @@ def test_merged_resolution_can_be_chosen(mixed):
 def test_a_scale_that_contradicts_the_resolutions_is_flagged(mixed):
     # Robot 2 claims 0.02 m/cell but its cells are 0.05 m: the alignment's scale (2.5)
     # and the resolutions (1) disagree.
+    # By default the alignment itself declines such a pair (AlignOptions.max_scale_disagreement).
     liar = mixed.maps[1].replace(resolution=0.02)
     maps = [mixed.maps[0], liar]
-    warned = gridmerge.merge(maps)
+    declined = gridmerge.merge(maps)
+    assert not declined.success and declined.unplaced == [liar.name]
+    assert "resolutions" in declined.alignments[1].message and "--any-scale" in declined.alignments[1].message
+    # For maps whose resolutions are unknown, any scale is aligned, and the merge's own
+    # check warns, rejects or keeps quiet.
+    warned = gridmerge.merge(maps, max_scale_disagreement=None)
     assert warned.success and len(warned.warnings) == 1 and "resolutions" in warned.warnings[0]
-    rejected = gridmerge.merge(maps, scale_check="reject")
+    rejected = gridmerge.merge(maps, scale_check="reject", max_scale_disagreement=None)
     assert not rejected.success and rejected.unplaced == [liar.name]
-    assert gridmerge.merge(maps, scale_check="off").warnings == []
+    assert gridmerge.merge(maps, scale_check="off", max_scale_disagreement=None).warnings == []
 
 
 def test_reverify_refines_a_nearby_pose_and_declines_a_wrong_one(fleet):

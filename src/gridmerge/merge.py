@@ -630,7 +630,10 @@ class Merger:
     scale_check : {"warn", "reject", "off"}
         A pair whose scale disagrees with the maps' resolutions by more than 10 %
         (``metric scale`` not 1) is reported in ``warnings`` (``"warn"``) or not used
-        (``"reject"``, for maps whose resolutions are right, as ROS maps' are).
+        (``"reject"``, for maps whose resolutions are right, as ROS maps' are). Beyond
+        ``AlignOptions.max_scale_disagreement`` (15 %) the alignment itself declines
+        the pair; with ``max_scale_disagreement=None`` (maps whose resolutions are
+        unknown; CLI ``--any-scale``) every scale reaches this check.
     joint : bool
         Refine all transforms jointly over the loops of the map graph.
     loop_tolerance : float
