@@ -303,13 +303,16 @@ def test_a_pose_is_rivalled_by_itself_shifted_along_what_does_not_fix_it():
 
 
 @pytest.mark.shared
-def test_real_maps_of_two_buildings_fitted_only_up_to_a_shift_are_declined(shared_data):
-    """An apartment map (HIH_02) laid into the open space of an office map (E5_02): its
-    walls agree on 55 % and no proposed pose came close, but shifted by 40 px it agrees
-    nearly as well. Declined."""
+@pytest.mark.parametrize("a_name, b_name", [("HIH_02", "E5_02"), ("E5_07", "HIH_01")])
+def test_real_maps_of_two_buildings_that_fit_by_chance_are_declined(shared_data, a_name, b_name):
+    """HIH_02 - E5_02: the apartment laid into the office's open space; its walls agree on
+    55 % and no proposed pose came close, but shifted by 40 px it agrees nearly as well.
+    E5_07 - HIH_01: an apartment room laid onto an office room by the wall-led search
+    (walls agree on 77 % of a 24 % overlap), beating every other pose by only 17 %.
+    Both declined."""
     from gridmerge.io import load_map
 
     folder = shared_data / "halmstad"
-    r = align(load_map(folder / "HIH" / "HIH_02.png"), load_map(folder / "E5" / "E5_02.png"), rng=0)
+    load = lambda name: load_map(folder / name.split("_")[0] / f"{name}.png")  # noqa: E731
+    r = align(load(a_name), load(b_name), rng=0)
     assert not r.success
-    assert r.candidate is None or r.details["runner_up_ratio"] >= 0.8 or "walls agree" in r.message
