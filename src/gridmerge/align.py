@@ -835,7 +835,7 @@ def _structural_confidence(wall: float, runner_up_ratio: float) -> float:
     77 %), the runner-up from 100 % to 80 % of the best score; the confidence is their
     geometric mean. Calibrated on the Halmstad sensor pairs and on simulated negatives
     (docs/benchmarks.md): at 0.5, no wrong merge there beyond two near misses; of the
-    56 Halmstad cross-building pairs, added later, 5 pass it.
+    56 Halmstad cross-building pairs, added later, 4 pass it.
     """
     w = min(1.0, max(0.0, (wall - 0.35) / 0.35))
     d = min(1.0, max(0.0, (1.0 - runner_up_ratio) / 0.2))
