@@ -316,3 +316,23 @@ def test_real_maps_of_two_buildings_that_fit_by_chance_are_declined(shared_data,
     load = lambda name: load_map(folder / name.split("_")[0] / f"{name}.png")  # noqa: E731
     r = align(load(a_name), load(b_name), rng=0)
     assert not r.success
+
+
+def test_a_pose_turned_a_few_degrees_about_the_shared_part_is_found_again():
+    """The wall-led search's candidates come from a few rotations; before its pose is
+    taken, the same merge turned by 2 and 4 degrees about the shared part is refined
+    too: from a pose 4 degrees off, one of them is the truth again."""
+    from gridmerge.align import AlignOptions, _Judge
+
+    a, b, truth = samples.robot_pair(0)
+    judge = _Judge(a, b, AlignOptions(), np.random.default_rng(0))
+    judge.prepare()
+    p, on = judge._shared_part(SimilarityTransform(truth))
+    cx, cy = p[on].mean(axis=0)
+    c, s = math.cos(math.radians(4.0)), math.sin(math.radians(4.0))
+    turn = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
+    off = SimilarityTransform(turn @ truth)
+    assert corner_error(off, truth, b.shape) > 20
+    found = judge.turned(off)
+    assert len(found) == 4
+    assert min(corner_error(t, truth, b.shape) for t in found) < 1.0

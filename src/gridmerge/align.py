@@ -650,6 +650,38 @@ class _Judge:
             best = max(best, score(AffineTransform(move @ t.params)))
         return best
 
+    def turned(self, t: AffineTransform) -> list[AffineTransform]:
+        """``t`` turned by :data:`_TURN_DEG` about the centre of the part of b it lays on
+        a's known cells, each refined (within :data:`_WALL_LED_REACH`)."""
+        p, on = self._shared_part(t)
+        if not on.any():
+            return []
+        cx, cy = p[on].mean(axis=0)
+        out = []
+        for deg in _TURN_DEG:
+            c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+            turn = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
+            start = SimilarityTransform.from_estimate(self.box, AffineTransform(turn @ t.params)(self.box))
+            if start:
+                out.append(self._refined(self._memo, start, max_shift=_WALL_LED_REACH))
+        return out
+
+    def _shared_part(self, t: AffineTransform) -> tuple[np.ndarray, np.ndarray]:
+        """A sample of b's known cells moved by ``t`` into a, and which of them land on
+        a's known cells."""
+        if self._known_b is None:
+            # About _RIVAL_CELLS of them, on a regular grid: no list of all known cells
+            # (a 3000 x 3000 map of noise has 9 million).
+            known = self.b.known
+            step = max(1, int(math.sqrt(np.count_nonzero(known) / _RIVAL_CELLS)))
+            self._known_b = np.argwhere(known[::step, ::step])[:, ::-1].astype(float) * step
+        p = self._known_b @ t.params[:2, :2].T + t.params[:2, 2]
+        h, w = self.a.shape
+        on = (p[:, 0] >= 0) & (p[:, 0] < w - 0.5) & (p[:, 1] >= 0) & (p[:, 1] < h - 0.5)
+        idx = np.rint(p[on]).astype(np.int64)
+        on[on] = self.a.known[idx[:, 1], idx[:, 0]]
+        return p, on
+
     def far_apart(self, s: AffineTransform, t: AffineTransform, px: float) -> bool:
         return bool(np.hypot(*(s(self.box) - t(self.box)).T).max() >= px)
 
@@ -661,17 +693,7 @@ class _Judge:
         scores nearly as well without being a different merge."""
         if not self.far_apart(best, t, _OTHER_POSE_PX):
             return False
-        if self._known_b is None:
-            # About _RIVAL_CELLS of them, on a regular grid: no list of all known cells
-            # (a 3000 x 3000 map of noise has 9 million).
-            known = self.b.known
-            step = max(1, int(math.sqrt(np.count_nonzero(known) / _RIVAL_CELLS)))
-            self._known_b = np.argwhere(known[::step, ::step])[:, ::-1].astype(float) * step
-        p = self._known_b @ best.params[:2, :2].T + best.params[:2, 2]
-        h, w = self.a.shape
-        on = (p[:, 0] >= 0) & (p[:, 0] < w - 0.5) & (p[:, 1] >= 0) & (p[:, 1] < h - 0.5)
-        idx = np.rint(p[on]).astype(np.int64)
-        on[on] = self.a.known[idx[:, 1], idx[:, 0]]
+        p, on = self._shared_part(best)
         if not on.any():
             return True
         q = self._known_b[on] @ t.params[:2, :2].T + t.params[:2, 2]
@@ -786,6 +808,18 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
             # and spurious hits, walls agree on 48-75 %): a pose twice as good as any
             # other needs less.
             clear = ratio2 <= _CLEAR_RATIO and wall2 >= _CLEAR_WALL and shared2 >= _CLEAR_SHARED
+            if confidence2 > confidence and (settled or clear):
+                # Before taking it: its candidates come from a few rotations, and the same
+                # merge turned a few degrees about the shared part may fit better (the
+                # refinement does not turn that far). If so, judge again with those poses.
+                turned = [(t, "walls (wall-led, turned)") for t in judge.turned(second[1])]
+                if turned and max(judge.weighed(t) for t, _ in turned) > second[0]:
+                    led = led + turned
+                    second = judge.decide(led, weighed=True, rivals=[t for t, _ in candidates])
+                    ratio2, confidence2 = _judged(second[0], second[3], second[4])
+                    wall2, shared2 = _full_wall(second[4]), second[4].overlap_fraction
+                    settled = wall2 >= _SETTLED_WALL and shared2 >= _WALL_LED_MIN_SHARED and ratio2 <= _WALL_LED_RATIO
+                    clear = ratio2 <= _CLEAR_RATIO and wall2 >= _CLEAR_WALL and shared2 >= _CLEAR_SHARED
             if confidence2 > confidence and (settled or clear):
                 wall, best, kind, runner_up, v = second
                 ratio, confidence = ratio2, confidence2
@@ -1017,6 +1051,8 @@ _MIN_SHARED = 0.05
 _SAME_POSE_PX = 10.0
 #: ... and farther than this, two clearly different poses (for the ambiguity check).
 _OTHER_POSE_PX = 40.0
+#: Turns (degrees) about the shared part tried before a wall-led pose is taken.
+_TURN_DEG = (-4.0, -2.0, 2.0, 4.0)
 #: Directions in which the best pose is shifted by _OTHER_POSE_PX to look for a rival.
 _SHIFT_DIRECTIONS = 24
 #: A clearly different pose is a rival of the best only when it moves the part of b the
