@@ -569,6 +569,7 @@ class _Judge:
         self._memo: dict = {}
         self._verified: dict = {}
         self._known_b: np.ndarray | None = None  # a sample of b's known cells (rival)
+        self._shared: dict = {}  # pose -> that sample moved into a, and which land on a's known cells
 
     def prepare(self) -> None:
         """What every candidate will need: the wall scorer, and the refinement's fields
@@ -668,7 +669,11 @@ class _Judge:
 
     def _shared_part(self, t: AffineTransform) -> tuple[np.ndarray, np.ndarray]:
         """A sample of b's known cells moved by ``t`` into a, and which of them land on
-        a's known cells."""
+        a's known cells (once per pose: :meth:`rival` asks for the same best pose against
+        every candidate)."""
+        k = self._key(t)
+        if k in self._shared:
+            return self._shared[k]
         if self._known_b is None:
             # About _RIVAL_CELLS of them, on a regular grid: no list of all known cells
             # (a 3000 x 3000 map of noise has 9 million).
@@ -680,6 +685,7 @@ class _Judge:
         on = (p[:, 0] >= 0) & (p[:, 0] < w - 0.5) & (p[:, 1] >= 0) & (p[:, 1] < h - 0.5)
         idx = np.rint(p[on]).astype(np.int64)
         on[on] = self.a.known[idx[:, 1], idx[:, 0]]
+        self._shared[k] = (p, on)
         return p, on
 
     def far_apart(self, s: AffineTransform, t: AffineTransform, px: float) -> bool:
@@ -796,8 +802,12 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         # Poses far below that share cannot be accepted: they are not refined (maps
         # that do not overlap at all, most pairs of a fleet, end here at little cost).
         led = [(t, kind) for t, kind in keypoints + [(h.transform, "walls (wall-led)") for h in walls] if judge.shared(t) >= _WALL_LED_MIN_SHARED - 0.05]
-        if led:
-            second = judge.decide(led, weighed=True, rivals=[t for t, _ in candidates])
+        earlier = [t for t, _ in candidates]
+
+        def judged_led(poses):
+            """The wall-led winner of ``poses``, its ratio and confidence, and whether it
+            may replace the first search's pose."""
+            second = judge.decide(poses, weighed=True, rivals=earlier)
             ratio2, confidence2 = _judged(second[0], second[3], second[4])
             wall2, shared2 = _full_wall(second[4]), second[4].overlap_fraction
             # Its winner must also beat every clearly different pose by a fifth (its
@@ -808,19 +818,19 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
             # and spurious hits, walls agree on 48-75 %): a pose twice as good as any
             # other needs less.
             clear = ratio2 <= _CLEAR_RATIO and wall2 >= _CLEAR_WALL and shared2 >= _CLEAR_SHARED
-            if confidence2 > confidence and (settled or clear):
+            return second, ratio2, confidence2, confidence2 > confidence and (settled or clear)
+
+        if led:
+            second, ratio2, confidence2, taken = judged_led(led)
+            if taken:
                 # Before taking it: its candidates come from a few rotations, and the same
                 # merge turned a few degrees about the shared part may fit better (the
                 # refinement does not turn that far). If so, judge again with those poses.
                 turned = [(t, "walls (wall-led, turned)") for t in judge.turned(second[1])]
                 if turned and max(judge.weighed(t) for t, _ in turned) > second[0]:
                     led = led + turned
-                    second = judge.decide(led, weighed=True, rivals=[t for t, _ in candidates])
-                    ratio2, confidence2 = _judged(second[0], second[3], second[4])
-                    wall2, shared2 = _full_wall(second[4]), second[4].overlap_fraction
-                    settled = wall2 >= _SETTLED_WALL and shared2 >= _WALL_LED_MIN_SHARED and ratio2 <= _WALL_LED_RATIO
-                    clear = ratio2 <= _CLEAR_RATIO and wall2 >= _CLEAR_WALL and shared2 >= _CLEAR_SHARED
-            if confidence2 > confidence and (settled or clear):
+                    second, ratio2, confidence2, taken = judged_led(led)
+            if taken:
                 wall, best, kind, runner_up, v = second
                 ratio, confidence = ratio2, confidence2
             candidates = candidates + led
