@@ -496,10 +496,10 @@ def robot_views_pair(
 
     Robot a maps in ``world``'s frame (cut to its known cells plus 5-20 unknown cells);
     robot b in its own frame, rotated by ``rotation_deg``, with cells ``scale`` times the
-    world's: it ray-casts, at its own resolution, a copy of the world resampled into its
-    frame (a wall is where a world wall cell's centre is, at any resolution). Both scan 360 degrees up to
-    :data:`RANGE_PX` world cells (:func:`gridmerge.samples.explore`), then get
-    ``noise`` (missed and spurious hits).
+    world's: it ray-casts at the world's resolution, as robot a does, and its map keeps a
+    wall where an observed wall cell's centre is (:func:`_observed_in_frame`). Both scan
+    360 degrees up to :data:`RANGE_PX` world cells (:func:`gridmerge.samples.explore`),
+    then get ``noise`` (missed and spurious hits).
 
     Parameters
     ----------
