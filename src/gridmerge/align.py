@@ -66,6 +66,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from types import MappingProxyType
 from typing import Callable
 
 import numpy as np
@@ -80,7 +81,7 @@ from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 from .correlate import correlation_hypotheses
 from .verify import Verification, WallScorer, despeckle, verify
 
-__all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor"]
+__all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor", "ANY_SCALE"]
 
 
 @dataclass(frozen=True)
@@ -139,15 +140,17 @@ class AlignOptions:
         ``"hybrid"`` (and the re-verification of known poses when merging): strength with
         which the refinement pulls the scale towards the maps' resolution ratio, in units
         of the information the cells give on the scale, for candidates already within 3 %
-        of that ratio; 0 (default) estimates the scale from the cells alone. For maps
-        whose resolutions are exact (laser SLAM maps), 4 makes merges more precise: the
-        cells constrain the scale least of the four parameters (on the simulated
-        benchmark, seed 0: 44 precise merges of 48 instead of 43, median corner error
-        0.18 px instead of 0.32). Where the cells contradict the ratio the
-        refinement's fit gets worse and it is refused (the candidate stays unrefined).
-        Not the default: on the Halmstad Tango maps it merged 3 more pairs but placed the
-        14-map E5 fleet worse (76 instead of 81 of 91 annotated pairs right); see
-        docs/benchmarks.md.
+        of that ratio; 0 estimates the scale from the cells alone. The cells constrain the
+        scale least of the four parameters, and SLAM maps know their resolution. Default
+        1 (measured 2026-11-29 against 0, docs/benchmarks.md): simulated seed 0, 46 of 48
+        pairs merged and 46 precise instead of 45 and 43 (seed 1: 42 and 42 instead of 43
+        and 42; the pair lost sits at the wall-led ratio's threshold, 0.802 against 0.8),
+        median corner error 0.13 px instead of 0.27; Halmstad 71 of 97 instead of 70,
+        the same 4 of 56 cross-building pairs merged, the E5 fleet 82 of 91 instead of 83,
+        simulated fleets more precise (16 robots: worst 0.46 px instead of 0.74). 4
+        (``--trust-resolution``) pulls harder, for maps whose resolutions are exact. Where
+        the cells contradict the ratio the refinement's fit gets worse and it is refused
+        (the candidate stays unrefined).
     max_scale_disagreement : float or None
         Decline a pose whose scale disagrees with the maps' resolution ratio by more than
         this fraction (0.15: outside 0.87-1.15 times the ratio; the ratio is b's
@@ -190,9 +193,15 @@ class AlignOptions:
     max_keypoints: int = 20000
     feature_pixels: int = 400_000
     keypoints_first: float = 0.9
-    scale_prior: float = 0.0
+    scale_prior: float = 1.0
     max_scale_disagreement: float | None = 0.15
     wall_led: bool = True
+
+
+#: :class:`AlignOptions` fields for maps whose resolutions are unknown or wrong (a
+#: blueprint, images of unknown pixel size; CLI ``--any-scale``): any scale is accepted and
+#: the refinement does not pull the scale towards the resolutions' ratio.
+ANY_SCALE = MappingProxyType({"max_scale_disagreement": None, "scale_prior": 0.0})
 
 
 @dataclass

@@ -122,6 +122,23 @@ def test_a_case_whose_resolutions_are_unknown_is_aligned_at_any_scale(monkeypatc
     assert aligned.success
 
 
+def test_a_case_whose_resolutions_are_unknown_gets_no_scale_prior(monkeypatch):
+    """Nor does the refinement pull the scale towards a ratio that means nothing."""
+    import importlib
+
+    from gridmerge import samples
+
+    align_module = importlib.import_module("gridmerge.align")
+    seen = []
+    real = align_module.align
+    monkeypatch.setattr(align_module, "align", lambda *args, **kw: seen.append(kw) or real(*args, **kw))
+    a, b, truth = samples.robot_pair(0)
+    for meta in ({"tier": "t"}, {"tier": "t", "resolutions_known": False}):
+        runner._align_measured(datasets.Case("t/x", "t", a, b, truth, True, meta), "hybrid", 0, False)
+    assert "scale_prior" not in seen[0]  # the default
+    assert seen[1]["scale_prior"] == 0.0 and seen[1]["max_scale_disagreement"] is None
+
+
 # ------------------------------------------------------------------------ CLI
 def _parser():
     common = argparse.ArgumentParser(add_help=False)

@@ -337,6 +337,8 @@ def runs(sample_maps, tmp_path_factory):
     runner.add("merge", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png", "--json", "--fusion", "average", "--resolution", "0.1"], folder("merge"))
     runner.add("align-json", ["align", "a.yaml", "b.yaml", "--json"], sample_maps.folder)
     runner.add("align-trust", ["align", "a.yaml", "b.yaml", "--json", "--trust-resolution"], sample_maps.folder)
+    runner.add("align-any", ["align", "a.yaml", "b.yaml", "--json", "--any-scale"], sample_maps.folder)
+    runner.add("align-trust-any", ["align", "a.yaml", "b.yaml", "--any-scale", "--trust-resolution"], sample_maps.folder)
     liar = folder("liar")  # b.yaml's resolution twice what its cells are
     text = (liar / "b.yaml").read_text()
     assert "resolution: 0.095" in text
@@ -466,13 +468,24 @@ def test_align_json_metric_uses_the_yaml_frames(runs, sample_maps):
 
 
 def test_trust_resolution_pulls_the_metric_scale_to_one(runs, sample_maps):
-    # The sample maps' resolutions are exact: with --trust-resolution the metric scale
-    # (b's world over a's) is nearer 1 and the pose at least as close to the truth.
-    free = parse_json(runs.get("align-json").result)["metric"]
+    # The sample maps' resolutions are exact. By default the refinement pulls the scale
+    # towards their ratio (metric scale, b's world over a's, nearer 1 than from the cells
+    # alone, as --any-scale leaves it); --trust-resolution pulls harder; the pose is at
+    # least as close to the truth.
+    cells_only = parse_json(runs.get("align-any").result)["metric"]
+    default = parse_json(runs.get("align-json").result)["metric"]
     trusted = parse_json(runs.get("align-trust").result)["metric"]
-    assert abs(trusted["scale"] - 1.0) < abs(free["scale"] - 1.0)
+    assert abs(default["scale"] - 1.0) < abs(cells_only["scale"] - 1.0)
+    assert abs(trusted["scale"] - 1.0) <= abs(default["scale"] - 1.0) + 1e-6
     a, b, truth = sample_maps.a, sample_maps.b, sample_maps.truth
-    assert metric_error(trusted, a, b, truth) <= metric_error(free, a, b, truth) + 1e-3
+    assert metric_error(default, a, b, truth) <= metric_error(cells_only, a, b, truth) + 1e-3
+    assert metric_error(trusted, a, b, truth) <= metric_error(default, a, b, truth) + 1e-3
+
+
+def test_trust_resolution_and_any_scale_together_are_one_usage_error(runs):
+    proc = runs.get("align-trust-any").result
+    assert proc.returncode == 2, describe(proc)
+    assert "not allowed with argument" in proc.stderr and "Traceback" not in proc.stderr
 
 
 def test_a_resolution_that_contradicts_the_cells_is_declined_unless_any_scale(runs):

@@ -160,7 +160,7 @@ def _max_rss_mb() -> Optional[float]:
 
 def _align_measured(case, method: str, seed: int, memory: bool):
     """``(result or None, wall_s, peak_mb, error)`` of one alignment."""
-    from ..align import align
+    from ..align import ANY_SCALE, align
 
     cv2.setRNGSeed(int(seed))
     started_here = False
@@ -177,7 +177,7 @@ def _align_measured(case, method: str, seed: int, memory: bool):
     t0 = time.perf_counter()
     try:
         # A map whose resolution is unknown (a blueprint) is aligned as a user would: at any scale.
-        overrides = {} if case.meta.get("resolutions_known", True) else {"max_scale_disagreement": None}
+        overrides = {} if case.meta.get("resolutions_known", True) else ANY_SCALE
         result = align(case.a, case.b, method=method, rng=seed, **overrides)
     except (KeyboardInterrupt, SystemExit):
         raise

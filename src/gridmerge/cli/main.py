@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Sequence
 
 from .. import __version__
-from ..align import METHODS, align
+from ..align import ANY_SCALE, METHODS, align
 from ..errors import GridMergeError, LimitExceededError, OutputError
 from ..fuse import FUSION_RULES
 from ..grid import DEFAULT_RESOLUTION
@@ -124,17 +124,19 @@ def _parser() -> argparse.ArgumentParser:
     )
     common.add_argument("--method", choices=sorted(METHODS), default="hybrid", help="alignment method (default: hybrid)")
     common.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
-    common.add_argument(
+    resolutions = common.add_mutually_exclusive_group()
+    resolutions.add_argument(
         "--trust-resolution",
         action="store_true",
-        help="the maps' resolutions are exact (laser SLAM maps): refine the scale towards their ratio "
-        "for more precise merges (AlignOptions.scale_prior = 4)",
+        help="the maps' resolutions are exact (laser SLAM maps): pull the refined scale harder towards "
+        "their ratio (AlignOptions.scale_prior = 4; default 1)",
     )
-    common.add_argument(
+    resolutions.add_argument(
         "--any-scale",
         action="store_true",
         help="the maps' resolutions are unknown or wrong: accept any scale between them, not only "
-        "within 15 %% of their resolutions' ratio (AlignOptions.max_scale_disagreement = None)",
+        "within 15 %% of their resolutions' ratio, and do not pull the scale towards it "
+        "(AlignOptions.max_scale_disagreement = None, scale_prior = 0)",
     )
     common.add_argument("--json", action="store_true", help="print the result as one JSON object")
     _add_limits(common)
@@ -266,11 +268,10 @@ def _capped_note(result, limits: Limits) -> str:
 
 
 def _scale_options(args) -> dict:
-    """AlignOptions of --trust-resolution and --any-scale."""
-    out: dict = {"scale_prior": _SCALE_PRIOR if args.trust_resolution else 0.0}
+    """AlignOptions of --trust-resolution and --any-scale (neither: the defaults)."""
     if args.any_scale:
-        out["max_scale_disagreement"] = None
-    return out
+        return dict(ANY_SCALE)
+    return {"scale_prior": _SCALE_PRIOR} if args.trust_resolution else {}
 
 
 def _cmd_align(args) -> int:
