@@ -92,6 +92,17 @@ def test_wall_scorer_agrees_with_itself_and_tells_wrong_poses():
     assert same.wall_agreement == 1.0 and same.consistency == 1.0 and same.overlap == 1.0
 
 
+def test_wall_scorer_judges_at_another_tolerance_on_request():
+    # 6 px off, few walls are within the scorer's 2 px of each other, most within 10 px;
+    # the scorer's own tolerance is unchanged by the request.
+    a, b, truth = samples.robot_pair(0)
+    s = WallScorer(a, b, tolerance=2.0)
+    off = SimilarityTransform(translation=(6, 0)) @ SimilarityTransform(truth)
+    strict, loose, again = s(off), s(off, tolerance=10.0), s(off)
+    assert loose.wall_agreement > strict.wall_agreement + 0.3
+    assert again == strict and s.tolerance == 2.0
+
+
 def test_despeckle_keeps_a_valid_read_only_grid():
     d = np.zeros((9, 9), np.float32)
     d[4, 4] = 1.0

@@ -661,16 +661,19 @@ class _Judge:
         return best
 
     def nudged(self, t: AffineTransform) -> list[AffineTransform]:
-        """``t`` shifted by :data:`_NUDGE_PX` in :data:`_NUDGE_DIRECTIONS` directions, each
-        refined (within :data:`_REFINE_REACH`): a better pose that ``t``'s own refinement
-        could not reach from where it started (one room of a map slid along another by
-        a wall's length)."""
-        out = []
+        """``t`` shifted by :data:`_NUDGE_PX` in :data:`_NUDGE_DIRECTIONS` directions, the
+        :data:`_NUDGE_REFINED` whose walls come nearest the other map's (within half that
+        shift) refined (within :data:`_REFINE_REACH`): a better pose that ``t``'s own
+        refinement could not reach from where it started (one room of a map slid along
+        another by a wall's length)."""
+        starts = []
         for k in range(_NUDGE_DIRECTIONS):
             angle = 2.0 * math.pi * k / _NUDGE_DIRECTIONS
             move = np.array([[1.0, 0.0, _NUDGE_PX * math.cos(angle)], [0.0, 1.0, _NUDGE_PX * math.sin(angle)], [0.0, 0.0, 1.0]])
-            out.append(self._refined(self._memo, SimilarityTransform(move @ t.params)))
-        return out
+            starts.append(SimilarityTransform(move @ t.params))
+        near = [self.scorer(s, tolerance=_NUDGE_PX / 2.0).wall_agreement for s in starts]
+        order = sorted(range(len(starts)), key=lambda i: -near[i])[:_NUDGE_REFINED]
+        return [self._refined(self._memo, starts[i]) for i in order]
 
     def turned(self, t: AffineTransform) -> list[AffineTransform]:
         """``t`` turned by :data:`_TURN_DEG` about the centre of the part of b it lays on
@@ -1099,10 +1102,12 @@ _OTHER_POSE_PX = 40.0
 _TURN_DEG = (-4.0, -2.0, 2.0, 4.0)
 #: Before the first search's pose is taken, it is shifted by this much (a's pixels;
 #: beyond the refinement's reach, short of a clearly different pose) in
-#: ``_NUDGE_DIRECTIONS`` directions and refined; a pose scoring more than ``_NUDGE_GAIN``
-#: above it (relative) is judged with the candidates.
+#: ``_NUDGE_DIRECTIONS`` directions, the ``_NUDGE_REFINED`` most promising are refined,
+#: and a pose scoring more than ``_NUDGE_GAIN`` above it (relative) is judged with the
+#: candidates.
 _NUDGE_PX = 20.0
 _NUDGE_DIRECTIONS = 8
+_NUDGE_REFINED = 2
 _NUDGE_GAIN = 0.1
 #: Directions in which the best pose is shifted by _OTHER_POSE_PX to look for a rival.
 _SHIFT_DIRECTIONS = 24

@@ -261,12 +261,15 @@ class WallScorer:
         conflict = int(np.count_nonzero((c & 2).astype(bool) & ~near))
         return int(np.count_nonzero(on_known)), good, conflict
 
-    def __call__(self, transform: AffineTransform) -> QuickScore:
+    def __call__(self, transform: AffineTransform, *, tolerance: float | None = None) -> QuickScore:
+        """The verdict on ``transform``, with walls coinciding within ``tolerance`` (a's
+        cells; default: the scorer's)."""
         (sa, ca, da, wa, pa), (sb, cb, db, wb, pb) = self._maps
+        tol = self.tolerance if tolerance is None else float(tolerance)
         inv = np.linalg.inv(transform.params)
         scale = math.sqrt(abs(float(np.linalg.det(transform.params[:2, :2])))) or 1.0
-        n_ab, good_ab, bad_ab = self._lookup(wb @ transform.params[:2, :2].T + transform.params[:2, 2], sa, ca, da, self.tolerance)
-        n_ba, good_ba, bad_ba = self._lookup(wa @ inv[:2, :2].T + inv[:2, 2], sb, cb, db, self.tolerance / scale)
+        n_ab, good_ab, bad_ab = self._lookup(wb @ transform.params[:2, :2].T + transform.params[:2, 2], sa, ca, da, tol)
+        n_ba, good_ba, bad_ba = self._lookup(wa @ inv[:2, :2].T + inv[:2, 2], sb, cb, db, tol / scale)
         shares = [g / n for g, n in ((good_ab, n_ab), (good_ba, n_ba)) if n > 0]
         wall = float(np.mean(shares)) if shares else 0.0
         cons = [g / (g + c) for g, c in ((good_ab, bad_ab), (good_ba, bad_ba)) if g + c > 0]
