@@ -653,12 +653,7 @@ class _Judge:
         the candidates need not include. A pose held by structure that does not fix it
         (one straight wall, a corridor, a room matched into a larger open space) scores
         nearly as well shifted along it."""
-        best = 0.0
-        for k in range(_SHIFT_DIRECTIONS):
-            angle = 2.0 * math.pi * k / _SHIFT_DIRECTIONS
-            move = np.array([[1.0, 0.0, _OTHER_POSE_PX * math.cos(angle)], [0.0, 1.0, _OTHER_POSE_PX * math.sin(angle)], [0.0, 0.0, 1.0]])
-            best = max(best, score(AffineTransform(move @ t.params)))
-        return best
+        return max((score(AffineTransform(p)) for p in _ring(t.params, _OTHER_POSE_PX, _SHIFT_DIRECTIONS)), default=0.0)
 
     def nudged(self, t: AffineTransform) -> list[AffineTransform]:
         """``t`` shifted by :data:`_NUDGE_PX` in :data:`_NUDGE_DIRECTIONS` directions, the
@@ -666,11 +661,7 @@ class _Judge:
         shift) refined (within :data:`_REFINE_REACH`): a better pose that ``t``'s own
         refinement could not reach from where it started (one room of a map slid along
         another by a wall's length)."""
-        starts = []
-        for k in range(_NUDGE_DIRECTIONS):
-            angle = 2.0 * math.pi * k / _NUDGE_DIRECTIONS
-            move = np.array([[1.0, 0.0, _NUDGE_PX * math.cos(angle)], [0.0, 1.0, _NUDGE_PX * math.sin(angle)], [0.0, 0.0, 1.0]])
-            starts.append(SimilarityTransform(move @ t.params))
+        starts = [SimilarityTransform(p) for p in _ring(t.params, _NUDGE_PX, _NUDGE_DIRECTIONS)]
         near = [self.scorer(s, tolerance=_NUDGE_PX / 2.0).wall_agreement for s in starts]
         order = sorted(range(len(starts)), key=lambda i: -near[i])[:_NUDGE_REFINED]
         return [self._refined(self._memo, starts[i]) for i in order]
@@ -758,6 +749,17 @@ class _Judge:
         others.append(self.shifted(best, score))
         runner_up = max(others, default=0.0)
         return value, best, kind, runner_up, self._verify(best)
+
+
+def _ring(params: np.ndarray, px: float, n: int) -> list[np.ndarray]:
+    """``(3, 3)`` matrices: ``params`` followed by a shift of ``px`` (a's pixels) in each
+    of ``n`` directions evenly around the circle, the first along +x."""
+    out = []
+    for k in range(n):
+        angle = 2.0 * math.pi * k / n
+        move = np.array([[1.0, 0.0, px * math.cos(angle)], [0.0, 1.0, px * math.sin(angle)], [0.0, 0.0, 1.0]])
+        out.append(move @ params)
+    return out
 
 
 def _side_generator(gen: np.random.Generator) -> np.random.Generator:
