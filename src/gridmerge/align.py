@@ -672,12 +672,11 @@ class _Judge:
         p, on = self._shared_part(t)
         if not on.any():
             return []
-        cx, cy = p[on].mean(axis=0)
+        centre = p[on].mean(axis=0)
         out = []
         for deg in _TURN_DEG:
-            c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
-            turn = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
-            start = SimilarityTransform.from_estimate(self.box, AffineTransform(turn @ t.params)(self.box))
+            turn = SimilarityTransform(translation=centre) @ SimilarityTransform(rotation=math.radians(deg)) @ SimilarityTransform(translation=-centre)
+            start = SimilarityTransform.from_estimate(self.box, AffineTransform(turn.params @ t.params)(self.box))
             if start:
                 out.append(self._refined(self._memo, start, max_shift=_WALL_LED_REACH))
         return out
@@ -754,12 +753,8 @@ class _Judge:
 def _ring(params: np.ndarray, px: float, n: int) -> list[np.ndarray]:
     """``(3, 3)`` matrices: ``params`` followed by a shift of ``px`` (a's pixels) in each
     of ``n`` directions evenly around the circle, the first along +x."""
-    out = []
-    for k in range(n):
-        angle = 2.0 * math.pi * k / n
-        move = np.array([[1.0, 0.0, px * math.cos(angle)], [0.0, 1.0, px * math.sin(angle)], [0.0, 0.0, 1.0]])
-        out.append(move @ params)
-    return out
+    angles = [2.0 * math.pi * k / n for k in range(n)]
+    return [SimilarityTransform(translation=(px * math.cos(u), px * math.sin(u))).params @ params for u in angles]
 
 
 def _side_generator(gen: np.random.Generator) -> np.random.Generator:
@@ -890,11 +885,9 @@ def scale_prior(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, opts: Al
     """``refine_direct``'s ``scale_prior`` for candidate ``t`` of maps a and b: the maps'
     resolution ratio with ``opts.scale_prior``'s strength, when ``t``'s scale is within 3 %
     of that ratio; ``None`` otherwise (maps whose resolutions are wrong are not pulled)."""
-    ratio = b.resolution / a.resolution
-    s = t.scale
-    if opts.scale_prior <= 0 or not s > 0 or abs(math.log(s / ratio)) > math.log(_SCALE_PRIOR_RANGE):
+    if opts.scale_prior <= 0 or _scale_disagreement(t, a, b) > _SCALE_PRIOR_RANGE - 1.0:
         return None
-    return (ratio, float(opts.scale_prior))
+    return (b.resolution / a.resolution, float(opts.scale_prior))
 
 
 def _full_wall(v: Verification) -> float:

@@ -952,9 +952,7 @@ class Merger:
             r = p.result
             if not r.success:
                 continue
-            metric_scale = pixel_to_metric(r.transform, maps[j], maps[i]).scale
-            disagrees = not (math.isfinite(metric_scale) and metric_scale > 0) or abs(math.log(metric_scale)) > math.log1p(SCALE_TOLERANCE)
-            if self.scale_check != "off" and disagrees:
+            if self.scale_check != "off" and _scale_disagreement(r.transform, maps[i], maps[j]) > SCALE_TOLERANCE:
                 p.note = (
                     f"scale {r.transform.scale:.3f} between {names[i]} and {names[j]} disagrees with their resolutions "
                     f"({maps[i].resolution:g} and {maps[j].resolution:g} m/cell say {maps[j].resolution / maps[i].resolution:.3f})"
