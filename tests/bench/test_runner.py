@@ -107,7 +107,7 @@ def test_a_failing_method_is_recorded_not_fatal(tmp_path, monkeypatch):
     assert r.row("boom", "paper")["errors"] == 1
 
 
-def test_a_case_whose_resolutions_are_unknown_is_aligned_at_any_scale(monkeypatch):
+def test_a_case_whose_resolutions_are_unknown_is_aligned_at_any_scale():
     """Layout pairs (a blueprint of unknown pixel size) say ``resolutions_known: False``;
     the runner then aligns them as a user would with --any-scale."""
     from gridmerge import samples
