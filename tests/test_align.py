@@ -94,6 +94,20 @@ def test_same_seed_same_result(table1):
     np.testing.assert_array_equal(r1.matrix, r2.matrix)
 
 
+@pytest.mark.parametrize("pair", ["robots", "different places"])
+def test_threads_change_nothing(monkeypatch, pair):
+    # align runs work ahead and aside in helper threads when there are two cores; the
+    # results must be those of running everything in turn, to the last bit.
+    a, b = samples.robot_pair(1)[:2] if pair == "robots" else samples.negative_pair(1)
+    threaded = align(a, b, rng=0)
+    monkeypatch.setattr("os.cpu_count", lambda: 1)
+    serial = align(a, b, rng=0)
+    assert threaded.candidate is not None
+    np.testing.assert_array_equal(threaded.candidate.params, serial.candidate.params)
+    assert (threaded.success, threaded.confidence, threaded.details) == (serial.success, serial.confidence, serial.details)
+    assert threaded.verification == serial.verification
+
+
 def test_metric_transform_maps_points_between_map_frames(table1, table1_result):
     a, b, truth = table1
     r = table1_result

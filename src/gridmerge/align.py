@@ -63,7 +63,7 @@ import json
 import math
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import MappingProxyType
@@ -569,23 +569,48 @@ class _Judge:
     """Scores, refines and ranks candidate transforms of one pair of maps, remembering
     what it has computed (the keypoints-first stage and the full search share it)."""
 
-    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng):
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng, *, pool: ThreadPoolExecutor | None = None):
         self.a, self.b, self.opts, self.rng = a, b, opts, rng
-        self.scorer: WallScorer | None = None
+        self.pool = pool  # a helper thread (work with no random draw only), or None
+        self._scorer: Future | None = None
+        self._fields: Future | None = None
         self.box = b.corners()
-        self.fields: dict = {}
         self._quick: dict = {}
         self._memo: dict = {}
         self._verified: dict = {}
         self._known_b: np.ndarray | None = None  # a sample of b's known cells (rival)
         self._shared: dict = {}  # pose -> that sample moved into a, and which land on a's known cells
 
+    def _later(self, fn, *args) -> Future:
+        """``fn(*args)`` in the helper thread, or now without one."""
+        return _done(fn(*args)) if self.pool is None else self.pool.submit(fn, *args)
+
     def prepare(self) -> None:
-        """What every candidate will need: the wall scorer, and the refinement's fields
-        for the maps' resolution ratio (the usual scale). No random draw."""
-        self.scorer = WallScorer(self.a, self.b, tolerance=self.opts.wall_tolerance)
-        if self.opts.refine:
-            prepare_fields(self.a, self.b, self.fields, scale=self.b.resolution / self.a.resolution)
+        """Make what every candidate will need: the wall scorer, then the refinement's
+        fields for the maps' resolution ratio (the usual scale). No random draw. In the
+        helper thread when there is one, the scorer first (scoring the first candidates
+        needs it alone); the judge waits for each when it first needs it."""
+
+        def fields() -> dict:
+            cache: dict = {}
+            if self.opts.refine:
+                prepare_fields(self.a, self.b, cache, scale=self.b.resolution / self.a.resolution)
+            return cache
+
+        def scorer() -> WallScorer:
+            return WallScorer(self.a, self.b, tolerance=self.opts.wall_tolerance)
+
+        self._scorer = self._later(scorer)
+        self._fields = self._later(fields)
+
+    @property
+    def scorer(self) -> WallScorer:
+        return self._scorer.result()
+
+    @property
+    def fields(self) -> dict:
+        """The refinement's cache (:func:`refine_direct` fills it further)."""
+        return self._fields.result()
 
     @staticmethod
     def _key(t: AffineTransform) -> bytes:
@@ -643,9 +668,10 @@ class _Judge:
         if self.opts.refine:
             best = self._refined({}, best, rng=_side_generator(self.rng))
             wall = self.quick(best)
+        verification = self._later(self._verify, best)  # while its rivals are sought
         runner_up = max((w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)), default=0.0)
         runner_up = max(runner_up, self.shifted(best, self.quick))
-        return wall, best, kind, runner_up, self._verify(best)
+        return wall, best, kind, runner_up, verification.result()
 
     def shifted(self, t: AffineTransform, score) -> float:
         """The best ``score`` of ``t`` shifted by :data:`_OTHER_POSE_PX` in any of
@@ -741,13 +767,14 @@ class _Judge:
             chosen.append([value, t, kind])
         chosen.sort(key=lambda c: -c[0])
         value, best, kind = chosen[0]
+        verification = self._later(self._verify, best)  # while its rivals are sought
         # The best score of a clearly different pose: repeated structure makes it close to the best.
         others = [w for w, t, _ in scored if self.rival(best, t)]
         others += [c[0] for c in chosen[1:] if self.rival(best, c[1])]
         others += [score(t) for t in rivals if self.rival(best, t)]
         others.append(self.shifted(best, score))
         runner_up = max(others, default=0.0)
-        return value, best, kind, runner_up, self._verify(best)
+        return value, best, kind, runner_up, verification.result()
 
 
 def _ring(params: np.ndarray, px: float, n: int) -> list[np.ndarray]:
@@ -766,13 +793,20 @@ def _side_generator(gen: np.random.Generator) -> np.random.Generator:
 
 
 def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
-    judge = _Judge(a, b, opts, rng)
-    # The judge's preparation needs only the maps: it runs while the keypoints are
-    # matched (OpenCV and numpy leave the interpreter while they work).
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-prepare") as pool:
-        prepared = pool.submit(judge.prepare)
-        hyps, src, dst = _keypoint_hypotheses(fa, fb, opts)
-        prepared.result()
+    # The judge's helper thread makes its tools, which need only the maps, while the
+    # keypoints are matched and the first candidates scored, and verifies the poses it
+    # settles on while their rivals are sought (OpenCV and numpy leave the interpreter
+    # while they work).
+    if (os.cpu_count() or 1) < 2:
+        return _hybrid_search(_Judge(a, b, opts, rng), fa, fb)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-judge") as pool:
+        return _hybrid_search(_Judge(a, b, opts, rng, pool=pool), fa, fb)
+
+
+def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
+    a, b, opts = judge.a, judge.b, judge.opts
+    judge.prepare()
+    hyps, src, dst = _keypoint_hypotheses(fa, fb, opts)
     details: dict = {}
     if hyps and opts.keypoints_first > 0:
         # Keypoints first: when their hypotheses alone settle the pose beyond doubt, the
@@ -1123,6 +1157,13 @@ def _extract_both(ext_a: FeatureExtractor, ext_b: FeatureExtractor, a: Occupancy
         job = pool.submit(ext_b, b)
         fa = ext_a(a)
         return fa, job.result()
+
+
+def _done(value) -> Future:
+    """A future already holding ``value``."""
+    f: Future = Future()
+    f.set_result(value)
+    return f
 
 
 def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True):

@@ -155,7 +155,10 @@ def _b_points(grid: OccupancyGrid, box, factor: int, sigma: float, planes=None):
     # Structure: a field changing by 0.01 per cell, or per smoothing width when wider (a
     # thin wall blurred over many cells, as a finer map's at a's coarse levels, changes by
     # less than 0.01 per cell).
-    ys, xs = np.nonzero((sk > 0.9) & (np.hypot(gx, gy) * max(1.0, sigma) > 0.01) & (k > 0.5))
+    near = cv2.bitwise_and(cv2.compare(sk, 0.9, cv2.CMP_GT), cv2.compare(cv2.magnitude(gx, gy), 0.01 / max(1.0, sigma), cv2.CMP_GT))
+    xy = cv2.findNonZero(cv2.bitwise_and(near, cv2.compare(k, 0.5, cv2.CMP_GT)))  # row by row, as np.nonzero
+    xy = np.zeros((0, 2), np.intp) if xy is None else xy.reshape(-1, 2).astype(np.intp)
+    xs, ys = xy[:, 0], xy[:, 1]
     return xs, ys, f[ys, xs].astype(np.float64)
 
 
