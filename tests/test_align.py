@@ -263,6 +263,12 @@ def test_the_default_scale_prior_makes_a_noisy_merge_precise(shared_data):
     assert corner_error(cells_only.transform, case.truth, case.b.shape) > 1.5
 
 
+def _turn_about(centre, deg: float) -> SimilarityTransform:
+    """A turn by ``deg`` degrees about the point ``centre`` (x, y)."""
+    c = np.asarray(centre, dtype=float)
+    return SimilarityTransform(translation=c) @ SimilarityTransform(rotation=math.radians(deg)) @ SimilarityTransform(translation=-c)
+
+
 def test_a_pose_turned_about_the_overlap_is_no_rival():
     """Turned 6 degrees about the shared part, a pose moves b's far corners well beyond
     40 px but the shared part little: the same merge for maps that bend, not another
@@ -279,10 +285,8 @@ def test_a_pose_turned_about_the_overlap_is_no_rival():
     p = p[inside]
     p = p[a.known[np.rint(p[:, 1]).astype(int), np.rint(p[:, 0]).astype(int)]]
     cx, cy = np.median(p, axis=0)
-    c, s = math.cos(math.radians(6.0)), math.sin(math.radians(6.0))
-    turn = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
-    turned = SimilarityTransform(turn @ best.params)
-    shifted = SimilarityTransform(best.params + np.array([[0, 0, 60.0], [0, 0, 0], [0, 0, 0]]))
+    turned = _turn_about((cx, cy), 6.0) @ best
+    shifted = SimilarityTransform(translation=(60.0, 0.0)) @ best
     assert judge.far_apart(best, turned, 40.0) and judge.far_apart(best, shifted, 40.0)
     assert not judge.rival(best, turned)
     assert judge.rival(best, shifted)
@@ -297,7 +301,7 @@ def test_a_nudged_pose_reaches_the_truth_that_refining_does_not():
     a, b, truth = samples.robot_pair(0)
     judge = _Judge(a, b, AlignOptions(), np.random.default_rng(0))
     judge.prepare()
-    start = SimilarityTransform(np.array([[1.0, 0.0, 26.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) @ truth)
+    start = SimilarityTransform(SimilarityTransform(translation=(26.0, 0.0)).params @ truth)
     alone = judge._refined({}, start)
     assert corner_error(alone, truth, b.shape) > 5.0
     nudged = judge.nudged(start)
@@ -388,9 +392,7 @@ def test_a_pose_turned_a_few_degrees_about_the_shared_part_is_found_again():
     judge.prepare()
     p, on = judge._shared_part(SimilarityTransform(truth))
     cx, cy = p[on].mean(axis=0)
-    c, s = math.cos(math.radians(4.0)), math.sin(math.radians(4.0))
-    turn = np.array([[c, -s, cx - c * cx + s * cy], [s, c, cy - s * cx - c * cy], [0.0, 0.0, 1.0]])
-    off = SimilarityTransform(turn @ truth)
+    off = SimilarityTransform(_turn_about((cx, cy), 4.0).params @ truth)
     assert corner_error(off, truth, b.shape) > 20
     found = judge.turned(off)
     assert len(found) == 4
