@@ -7,7 +7,7 @@ import pytest
 
 from gridmerge import OccupancyGrid, samples
 from gridmerge import refine as refine_mod
-from gridmerge.refine import _a_field, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
+from gridmerge.refine import _a_field, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
 from gridmerge.transforms import SimilarityTransform, corner_error
 
 
@@ -181,6 +181,27 @@ def test_block_fields_equal_the_dense_fields():
             np.testing.assert_allclose(GY, gy[y, x], atol=1e-5)
             np.testing.assert_allclose(SK, sk[y, x], atol=1e-5)
             assert (KN == ~np.isnan(grid.data[y, x])).all()
+
+
+@pytest.mark.parametrize("sigma", [0.8, 1.0, 3.0])
+def test_structure_cells_are_those_of_the_written_rule(robots, sigma):
+    # b's cells near structure: well inside its known cells (smoothed known mask > 0.9),
+    # known themselves, with a field changing by 0.01 per cell (or per smoothing width),
+    # row by row as numpy lists them.
+    _, b, _ = robots
+    k, v = _planes(b, _whole(b), 1)
+    f, gx, gy, sk = _smoothed(k, v, sigma)
+    change = np.hypot(gx, gy) * max(1.0, sigma)
+    rule = (sk > 0.9) & (change > 0.01) & (k > 0.5)
+    x, y, values = _b_points(b, _whole(b), 1, sigma)
+    found = np.zeros_like(rule)
+    found[y, x] = True
+    assert rule.sum() > 1000
+    # The same cells (but for any whose change is within float rounding of 0.01) ...
+    assert not ((found != rule) & (np.abs(change - 0.01) > 1e-6)).any()
+    # ... each once, row by row, with its field value.
+    assert (np.diff(y.astype(np.int64) * b.width + x) > 0).all()
+    np.testing.assert_array_equal(values, f[y, x].astype(np.float64))
 
 
 def test_half_resolution_fields_sample_the_full_resolution_ones():
