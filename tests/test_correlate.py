@@ -3,7 +3,7 @@ import pytest
 
 from gridmerge import samples
 from gridmerge.align import full_to_crop, working_maps
-from gridmerge.correlate import correlation_hypotheses
+from gridmerge.correlate import correlation_hypotheses, match_rotation
 from gridmerge.transforms import SimilarityTransform, corner_error
 
 
@@ -45,3 +45,19 @@ def test_each_scale_keeps_its_own_hypotheses():
     assert [h.scale for h in hyps] == [1.0] * 5 + [0.5] * 5
     for part in (hyps[:5], hyps[5:]):
         assert [h.score for h in part] == sorted((h.score for h in part), reverse=True)
+
+
+def test_the_rotation_right_matches_agree_on_is_voted_among_many_wrong_ones():
+    rng = np.random.default_rng(3)
+    wrong = rng.uniform(0.0, 360.0, 300)
+    right = rng.normal(127.0, 0.7, 25)
+    angles = np.concatenate([wrong, right])
+    sizes = np.concatenate([rng.uniform(0.3, 3.0, 300), rng.normal(1.5, 0.02, 25)])
+    voted = match_rotation(angles, sizes, 1.5)
+    assert abs(voted - 127.0) <= 3.0
+    # A match turned by half a turn votes for the same rotation modulo 180 degrees.
+    flipped = match_rotation(np.concatenate([wrong, right + 180.0]), sizes, 1.5)
+    assert flipped == voted
+    # Matches of another size ratio do not vote; too few votes give no rotation.
+    assert match_rotation(right[:10], np.full(10, 1.5), 1.5) is None
+    assert match_rotation(right, np.full(25, 1.5), 0.5) is None

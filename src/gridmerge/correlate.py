@@ -54,7 +54,7 @@ import numpy as np
 from .grid import OccupancyGrid
 from .transforms import SimilarityTransform
 
-__all__ = ["CorrelationHypothesis", "direction_histogram", "rotation_candidates", "correlation_hypotheses"]
+__all__ = ["CorrelationHypothesis", "direction_histogram", "rotation_candidates", "match_rotation", "correlation_hypotheses"]
 
 
 @dataclass(frozen=True)
@@ -122,6 +122,66 @@ def rotation_candidates(a: OccupancyGrid, b: OccupancyGrid, n: int = 4, min_sepa
         if len(peaks) >= n:
             break
     return [p * step for p in peaks]
+
+
+def match_rotation(
+    angles: np.ndarray,
+    sizes: np.ndarray,
+    scale: float,
+    *,
+    min_votes: int = 20,
+    scale_tolerance: float = 1.25,
+    smooth: int = 3,
+) -> float | None:
+    """The rotation (degrees, modulo 180) that most keypoint matches vote for.
+
+    A cue apart from the wall directions: each match of two oriented keypoints proposes
+    the difference of their orientations. Only matches whose size ratio is within
+    ``scale_tolerance`` of ``scale`` (the expected one, e.g. the maps' resolution ratio)
+    vote, in 1-degree bins modulo 180 (the correlation tries both half turns of a
+    rotation); the answer is the centre of the window of ``2 smooth + 1`` bins that holds
+    the most votes. Wrong matches spread their votes while right ones pile up, so a
+    handful of right ones among many wrong can carry it, but only to within the window:
+    wrong matches of rectilinear buildings also pile up at multiples of 90 degrees from
+    the wall directions, and pull a finer estimate (the median of the window's votes)
+    towards them. A caller should scan the window (:func:`gridmerge.align` tries
+    offsets of up to 2 degrees around it).
+
+    Parameters
+    ----------
+    angles : (N,) float array
+        Rotation each match proposes, degrees (a's keypoint orientation minus b's).
+    sizes : (N,) float array
+        Each match's size ratio (a's keypoint size over b's).
+    scale : float
+        The expected scale (a's pixels per b's pixel).
+    min_votes : int
+        Fewer voting matches give no rotation.
+
+    Returns
+    -------
+    float or None
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> angles = np.concatenate([rng.uniform(0, 360, 200), rng.normal(33.0, 0.5, 30)])
+    >>> abs(match_rotation(angles, np.ones(230), 1.0) - 33.0) <= 3.0   # 30 right votes among 230
+    True
+    """
+    angles = np.asarray(angles, dtype=float)
+    sizes = np.asarray(sizes, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        near = np.abs(np.log(np.maximum(sizes, 1e-9) / scale)) < math.log(scale_tolerance)
+    near &= np.isfinite(angles)
+    if np.count_nonzero(near) < max(1, int(min_votes)):
+        return None
+    votes = angles[near] % 180.0
+    hist, _ = np.histogram(votes, bins=180, range=(0.0, 180.0))
+    k = max(0, int(smooth))
+    if k:
+        hist = np.convolve(np.concatenate([hist[-k:], hist, hist[:k]]), np.ones(2 * k + 1), "valid")
+    return float(np.argmax(hist)) + 0.5
 
 
 def _channels(grid: OccupancyGrid, factor: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
