@@ -23,7 +23,8 @@ Methods
     share large explored areas, where wall agreement judges well); when that pose is not
     confident enough, wall-led (shared free space weighs little: it finds the right pose
     of maps that share a small part far more often, but also poses that agree by chance
-    on a small part). The wall-led candidates are ranked by wall agreement weighed by the
+    on a small part; besides the wall directions' rotations it tries the one most keypoint
+    matches vote for). The wall-led candidates are ranked by wall agreement weighed by the
     walls compared and the share of the maps overlapped, every pose of the first search
     counts as a rival, and the winner replaces the first one only when it is more
     confident and its walls agree on at least 75 % of the overlap (or, on noisy maps that
@@ -31,8 +32,9 @@ Methods
     candidate is judged first, alone: when it settles the pose beyond doubt (confidence
     at least ``AlignOptions.keypoints_first``, walls agreeing on 75 % of the overlap, no
     clearly different keypoint candidate above 60 % of its score), the wall correlation
-    is skipped. The maps' preparation for scoring and refinement runs in a thread while
-    the keypoints are matched, and the two maps' keypoints are found in parallel.
+    is skipped. The two maps' keypoints are found in parallel; a helper thread prepares
+    the maps for scoring and refinement while the keypoints are matched, and verifies
+    each settled pose while its rivals are sought.
 ``"sift"``
     The keypoint candidates alone, verified and refined the same way.
 ``"ransac"``

@@ -157,10 +157,15 @@ def match_rotation(
         The expected scale (a's pixels per b's pixel).
     min_votes : int
         Fewer voting matches give no rotation.
+    scale_tolerance : float
+        A match votes when its size ratio is within this factor of ``scale``.
+    smooth : int
+        Bins either side of the window's centre.
 
     Returns
     -------
     float or None
+        The window's centre, degrees in [0, 180).
 
     Examples
     --------
