@@ -841,7 +841,8 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
     # First the overlap-seeking correlation (shared free space weighs much): its best
     # poses are those with large shared explored areas, where the wall agreement judges
     # well. ``scales[0]`` is the maps' resolution ratio, the others the keypoints' scales.
-    wide = correlation_hypotheses(a, b, scales=scales, free_agreement=_OVERLAP_SEEKING)
+    rotations = rotation_candidates(a, b)  # the wall directions', for both wall searches
+    wide = correlation_hypotheses(a, b, scales=scales, rotations=rotations, free_agreement=_OVERLAP_SEEKING)
     wide = sorted(wide, key=lambda h: -h.score)[:_WIDE_HYPOTHESES]
     candidates = keypoints + [(h.transform, "walls") for h in wide]
     if not candidates:
@@ -881,10 +882,9 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
         # maps the direction histograms can peak 2-5 degrees off, beyond the offsets
         # tried around them; most matches are wrong there, but the right ones agree
         # (simulated pairs 32 and 51 of seed 1 are found only with it).
-        rotations = rotation_candidates(a, b)
         voted = match_rotation(*votes, scales[0])
         if voted is not None and all(_degrees_apart(voted, r) > 1.0 for r in rotations):
-            rotations.append(voted)
+            rotations = rotations + [voted]
         walls = correlation_hypotheses(a, b, scales=scales[:1], rotations=rotations, fine_deg=_WALL_LED_FINE_DEG)
         details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4)}
         # Poses far below that share cannot be accepted: they are not refined (maps

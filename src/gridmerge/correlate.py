@@ -97,9 +97,18 @@ def direction_histogram(grid: OccupancyGrid, bins: int = 180, smooth: float = 1.
     if smooth > 0:
         half = int(math.ceil(3 * smooth))
         k = np.exp(-0.5 * (np.arange(-half, half + 1) / smooth) ** 2)
-        hist = np.convolve(np.concatenate([hist[-half:], hist, hist[:half]]), k, "valid")
+        hist = _circular_convolve(hist, k)
     norm = np.linalg.norm(hist)
     return hist / norm if norm > 0 else hist
+
+
+def _circular_convolve(hist: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """``hist`` (a histogram of angles, its ends adjacent) convolved with an odd-length
+    ``kernel``, the same length as ``hist``."""
+    half = len(kernel) // 2
+    if half == 0:
+        return hist * kernel[0]
+    return np.convolve(np.concatenate([hist[-half:], hist, hist[:half]]), kernel, "valid")
 
 
 def rotation_candidates(a: OccupancyGrid, b: OccupancyGrid, n: int = 4, min_separation_deg: float = 5.0) -> list[float]:
@@ -185,7 +194,7 @@ def match_rotation(
     hist, _ = np.histogram(votes, bins=180, range=(0.0, 180.0))
     k = max(0, int(smooth))
     if k:
-        hist = np.convolve(np.concatenate([hist[-k:], hist, hist[:k]]), np.ones(2 * k + 1), "valid")
+        hist = _circular_convolve(hist, np.ones(2 * k + 1))
     return float(np.argmax(hist)) + 0.5
 
 
