@@ -123,3 +123,79 @@ def test_proposal_scores_count_as_the_plain_formula():
     for block in (1, 7, 32, 1000):
         got = _proposal_scores(src, dst, cand, cos, sin, tx, ty, growth, 3.0, block)
         np.testing.assert_array_equal(got, expect)
+
+
+def _scene(seed, n_b=500, size=1000.0):
+    rng = np.random.default_rng(seed)
+    xy_b = rng.uniform(0, size, (n_b, 2))
+    t = SimilarityTransform(rotation=0.4, scale=1.1, translation=(60.0, -25.0))
+    return rng, xy_b, t, t(xy_b) + rng.normal(0, 1.0, (n_b, 2))
+
+
+def _random_pairs(rng, n_a, n_b, k):
+    """Each of a's keypoints matched to ``k`` of b's at random (uninformative descriptors)."""
+    return np.array([(i, j) for i in range(n_a) for j in rng.choice(n_b, k, replace=False)])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_match_evidence_of_random_matches_stays_at_chance_level(seed):
+    from gridmerge.estimate import match_evidence
+
+    rng, xy_b, t, xy_a = _scene(seed)
+    e = match_evidence(xy_a, xy_b, _random_pairs(rng, len(xy_a), len(xy_b), 3), t)
+    # About what chance gives: a few agreeing keypoints, insignificant.
+    assert e.expected > 1.0
+    assert e.significance < 3.0
+
+
+def test_match_evidence_grows_with_the_right_matches_and_ignores_other_poses():
+    from gridmerge.estimate import match_evidence
+
+    rng, xy_b, t, xy_a = _scene(7)
+    pairs = _random_pairs(rng, len(xy_a), len(xy_b), 3)
+    pairs[: 3 * 12 : 3, 1] = np.arange(12)  # 12 of a's keypoints keep their true match
+    e = match_evidence(xy_a, xy_b, pairs, t)
+    assert e.consistent >= 12 and e.significance > 6
+    # Another pose (shifted by 100 px) finds only chance agreement among the same matches.
+    other = SimilarityTransform(translation=(100.0, 0.0)) @ t
+    assert match_evidence(xy_a, xy_b, pairs, other).significance < 3.0
+
+
+def test_match_evidence_counts_a_cluster_of_keypoints_once():
+    """SIFT puts one keypoint per orientation on a corner, and a repeated object gives a
+    tight group of matches: agreeing keypoints within one cell of ``separation`` count once."""
+    from gridmerge.estimate import match_evidence
+
+    rng, xy_b, t, xy_a = _scene(3)
+    base = _random_pairs(rng, len(xy_a), len(xy_b), 3)
+    alone = match_evidence(xy_a, xy_b, np.vstack([base, [[0, 0]]]), t)  # a's first keypoint matched right
+    # 9 more keypoints of a on that one, each matched right.
+    crowded = np.vstack([xy_a, np.repeat(xy_a[:1], 9, axis=0)])
+    extra = np.stack([np.arange(len(xy_a), len(xy_a) + 9), np.zeros(9, int)], axis=1)
+    one = match_evidence(crowded, xy_b, np.vstack([base, [[0, 0]], extra]), t)
+    assert one.consistent == alone.consistent
+    assert one.significance < 3.0
+
+
+def test_match_evidence_without_matches_is_none():
+    from gridmerge.estimate import match_evidence
+
+    e = match_evidence(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2), int), SimilarityTransform())
+    assert (e.consistent, e.expected, e.significance) == (0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("k, lam", [(0, 2.0), (1, 2.3), (3, 2.3), (12, 2.3), (4, 0.5), (30, 12.0)])
+def test_poisson_significance_is_the_upper_tail(k, lam):
+    from gridmerge.estimate import _poisson_significance
+
+    tail = 1.0 - sum(math.exp(-lam) * lam**j / math.factorial(j) for j in range(k))
+    assert _poisson_significance(k, lam) == pytest.approx(-math.log10(tail), rel=1e-6, abs=1e-9)
+
+
+def test_neighbour_counts_are_those_of_all_pairs():
+    from gridmerge.estimate import _neighbour_counts
+
+    rng = np.random.default_rng(1)
+    points, queries = rng.uniform(-50, 300, (3000, 2)), rng.uniform(-80, 330, (500, 2))
+    brute = (np.hypot(*(points[None] - queries[:, None]).transpose(2, 0, 1)) <= 8.0).sum(axis=1)
+    assert np.array_equal(_neighbour_counts(points, queries, 8.0), brute)

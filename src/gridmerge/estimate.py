@@ -35,7 +35,7 @@ import numpy as np
 
 from .transforms import ScaledRotationTransform
 
-__all__ = ["Model", "ransac", "paper_consensus", "ConsensusReport", "Hypothesis", "similarity_hypotheses"]
+__all__ = ["Model", "ransac", "paper_consensus", "ConsensusReport", "Hypothesis", "similarity_hypotheses", "MatchEvidence", "match_evidence"]
 
 
 class Model(Protocol):
@@ -447,3 +447,153 @@ def similarity_hypotheses(
         hypotheses.append(Hypothesis(model, inl, _support(src, dst, inl)))
     hypotheses.sort(key=lambda h: -h.support)
     return hypotheses
+
+
+@dataclass(frozen=True)
+class MatchEvidence:
+    """How unlikely it is that a transform's consistent matches arose by chance.
+
+    The question asked (an *a contrario* test, as in Moisan and Stival's ORSA): were the
+    descriptors uninformative, each keypoint of a would be matched to b's keypoints at
+    random, and a match would agree with the transform only when it happened to pick a
+    keypoint that the transform lays near it. Keypoints crowd where the maps' structure
+    is, so the chance is counted keypoint by keypoint, at the transform itself.
+
+    Attributes
+    ----------
+    consistent : int
+        Places of a (cells of ``separation`` pixels) holding a keypoint with a match that
+        agrees with the transform within ``radius``: clusters of keypoints on one corner
+        (SIFT gives one per orientation, repeated objects give several) count once.
+    expected : float
+        How many of a's keypoints would agree by chance (Poisson mean): the sum over a's
+        matched keypoints of the chance that any of their matches is one of the b
+        keypoints the transform lays within ``radius`` of them.
+    significance : float
+        ``-log10 P(X >= consistent)`` for ``X ~ Poisson(expected)``: 0 when the count is
+        what chance gives, 5 when chance gives it once in 100 000 (capped at 300).
+    """
+
+    consistent: int
+    expected: float
+    significance: float
+
+    def to_dict(self) -> dict:
+        return {"consistent": self.consistent, "expected": round(self.expected, 3), "significance": round(self.significance, 3)}
+
+
+def _poisson_significance(k: int, lam: float) -> float:
+    """``-log10 P(X >= k)`` for ``X ~ Poisson(lam)``, capped at 300."""
+    if k <= 0:
+        return 0.0
+    if lam <= 0.0:
+        return 300.0
+    log_pmf = lambda j: j * math.log(lam) - lam - math.lgamma(j + 1)  # noqa: E731
+    if k <= lam:
+        # The tail is most of the mass: 1 - P(X < k).
+        cdf = math.fsum(math.exp(log_pmf(j)) for j in range(k))
+        return min(300.0, -math.log10(max(1.0 - cdf, 1e-300)))
+    # Terms fall from j = k on (ratio lam / (j + 1) < 1): sum them in logs.
+    terms = [log_pmf(k)]
+    j = k
+    while terms[-1] - terms[0] > -40.0 and j < k + 10_000:
+        j += 1
+        terms.append(terms[-1] + math.log(lam / j))
+    top = terms[0]
+    log_tail = top + math.log(math.fsum(math.exp(t - top) for t in terms))
+    return min(300.0, -log_tail / math.log(10.0))
+
+
+def _neighbour_counts(points: np.ndarray, queries: np.ndarray, radius: float) -> np.ndarray:
+    """``(Q,)`` int: how many of ``points`` lie within ``radius`` of each query (cells of
+    ``radius`` pixels hashed, only the 3 x 3 cells around a query compared)."""
+    if len(points) == 0 or len(queries) == 0:
+        return np.zeros(len(queries), np.int64)
+    cell = np.floor(points / radius).astype(np.int64)
+    lo = cell.min(axis=0) - 1
+    cell -= lo
+    width = int(cell[:, 0].max()) + 2
+    key = cell[:, 1] * width + cell[:, 0]
+    order = np.argsort(key, kind="stable")
+    key, pts = key[order], points[order]
+    qc = np.floor(queries / radius).astype(np.int64) - lo
+    counts = np.zeros(len(queries), np.int64)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            cx, cy = qc[:, 0] + dx, qc[:, 1] + dy
+            valid = (cx >= 0) & (cx < width) & (cy >= 0)
+            k = np.where(valid, cy * width + cx, -1)
+            start = np.searchsorted(key, k, side="left")
+            stop = np.searchsorted(key, k, side="right")
+            n = np.where(valid, stop - start, 0)
+            if not n.any():
+                continue
+            which = np.repeat(np.arange(len(queries)), n)
+            first = np.repeat(start - np.cumsum(n) + n, n)
+            idx = first + np.arange(int(n.sum()))
+            near = np.hypot(*(pts[idx] - queries[which]).T) <= radius
+            counts += np.bincount(which[near], minlength=len(queries))
+    return counts
+
+
+def match_evidence(
+    xy_a: np.ndarray,
+    xy_b: np.ndarray,
+    pairs: np.ndarray,
+    transform,
+    *,
+    radius: float = 8.0,
+    separation: float = 20.0,
+) -> MatchEvidence:
+    """How strongly the keypoint matches support ``transform`` beyond chance.
+
+    Parameters
+    ----------
+    xy_a, xy_b : (Na, 2) and (Nb, 2) float arrays
+        All keypoints of maps a and b, image pixels ``(x = column, y = row)``.
+    pairs : (M, 2) int array
+        Candidate matches ``(index in a, index in b)``; a keypoint of a may have several.
+    transform : AffineTransform
+        b's pixels -> a's pixels.
+    radius : float
+        Distance (a's pixels) within which a match agrees with ``transform``; generous,
+        for maps that bend.
+    separation : float
+        Consistent keypoints closer than this (cells of this size) count once.
+
+    Returns
+    -------
+    MatchEvidence
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gridmerge.transforms import SimilarityTransform
+    >>> rng = np.random.default_rng(0)
+    >>> xy_b = rng.uniform(0, 1000, (400, 2))
+    >>> t = SimilarityTransform(rotation=0.5, translation=(100, -30))
+    >>> xy_a = t(xy_b)
+    >>> right = np.stack([np.arange(30), np.arange(30)], axis=1)   # 30 true matches
+    >>> wrong = np.stack([np.arange(30, 400), rng.permutation(np.arange(30, 400))], axis=1)
+    >>> e = match_evidence(xy_a, xy_b, np.vstack([right, wrong]), t)
+    >>> e.consistent >= 30, e.significance > 20
+    (True, True)
+    >>> match_evidence(xy_a, xy_b, wrong, t).significance < 2
+    True
+    """
+    xy_a = np.asarray(xy_a, dtype=float).reshape(-1, 2)
+    xy_b = np.asarray(xy_b, dtype=float).reshape(-1, 2)
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if len(pairs) == 0 or len(xy_b) == 0:
+        return MatchEvidence(0, 0.0, 0.0)
+    moved = transform(xy_b)
+    ia, ib = pairs[:, 0], pairs[:, 1]
+    agree = np.hypot(*(moved[ib] - xy_a[ia]).T) < radius
+    places = np.unique(np.floor(xy_a[ia[agree]] / separation).astype(np.int64), axis=0)
+    # The chance of each matched keypoint of a: its m matches drawn at random from b's
+    # keypoints, at least one among the n that the transform lays within the radius.
+    keys, m = np.unique(ia, return_counts=True)
+    n = _neighbour_counts(moved, xy_a[keys], radius)
+    chance = 1.0 - (1.0 - np.minimum(n / len(xy_b), 1.0)) ** m
+    expected = float(chance.sum())
+    return MatchEvidence(len(places), expected, _poisson_significance(len(places), expected))
