@@ -953,7 +953,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
         if rival is not None:
             details["keypoint_evidence"]["rival_significance"] = round(rival, 3)
         if matched_confidence > confidence and _full_wall(v) >= opts.min_wall_agreement_matched:
-            details["confirmed_by"] = "keypoint matches"
+            details["confirmed_by"] = f"the keypoint matches: {evidence.consistent} places agree, where chance gives {evidence.expected:.1f}"
             return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched_confidence, matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
 
@@ -1151,7 +1151,7 @@ def align(
         matches=int(len(est.src)),
         keypoints=(len(fa), len(fb)),
         method=method,
-        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}",
+        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}" + _matched_note(est),
         elapsed_s=time.perf_counter() - t0,
         verification=v,
         inlier_xy=inlier_xy,
@@ -1285,6 +1285,11 @@ def full_to_crop(t: AffineTransform, oa: np.ndarray, ob: np.ndarray) -> AffineTr
 
 def _shifted(f: Features, offset: np.ndarray) -> Features:
     return f if not offset.any() else replace(f, xy=f.xy + offset)
+
+
+def _matched_note(est: Estimate) -> str:
+    """What the message adds when the keypoint matches confirmed the pose."""
+    return f" (confirmed by {est.details['confirmed_by']})" if est.matched and "confirmed_by" in est.details else ""
 
 
 def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool = True,

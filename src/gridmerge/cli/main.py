@@ -289,6 +289,8 @@ def _cmd_align(args) -> int:
         print(f"aligned: rotation {r.rotation_deg:.3f} deg, scale {r.scale:.5f}, translation ({t.translation[0]:.2f}, {t.translation[1]:.2f}) px")
         print(f"metric (B's frame in A's): x {m['x']:.3f} m, y {m['y']:.3f} m, yaw {m['yaw']:.5f} rad, scale {m['scale']:.5f}")
         print(f"confidence {r.confidence:.2f}, acceptance index {r.acceptance_index:.3f}, {r.inliers} inliers of {r.matches} matches, {r.elapsed_s:.2f} s")
+        if "confirmed_by" in r.details:
+            print(f"confirmed by {r.details['confirmed_by']}")
     else:
         print(f"not aligned: {r.message}")
     if _capped_note(r, limits):
