@@ -966,8 +966,9 @@ def _matched(judge: _Judge, best: AffineTransform, candidates: list[AffineTransf
 
     The confidence rises from 0 at significance :data:`_MATCHED_FROM` (above what chance
     reached on maps of different places, real and simulated, and on any candidate the
-    search tried) to 1 :data:`_MATCHED_SPAN` decades above it, and is held down as much by the most significant clearly different candidate
-    (:meth:`_Judge.rival`), counted on the matches that ``best`` misses by at least
+    search tried) to 1 :data:`_MATCHED_SPAN` decades above it, and is held down as much
+    by the most significant clearly different candidate (:meth:`_Judge.rival`), whose
+    significance is counted on the matches that ``best`` misses by at least
     :data:`_RIVAL_OVERLAP_PX`: two poses that different matches support are two answers
     (repeated places). Matches ``best`` misses by less are the same answer on maps that
     bend: the same merge turned a few degrees or scaled a few percent fits another part

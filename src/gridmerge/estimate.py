@@ -468,7 +468,8 @@ class MatchEvidence:
     expected : float
         How many of a's keypoints would agree by chance (Poisson mean): the sum over a's
         matched keypoints of the chance that any of their matches is one of the b
-        keypoints the transform lays within ``radius`` of them.
+        keypoints the transform lays within ``radius`` of them. Keypoints, not places:
+        comparing it with ``consistent`` errs on the side of chance.
     significance : float
         ``-log10 P(X >= consistent)`` for ``X ~ Poisson(expected)``: 0 when the count is
         what chance gives, 5 when chance gives it once in 100 000 (capped at 300).
