@@ -418,13 +418,13 @@ def test_a_pose_turned_a_few_degrees_about_the_shared_part_is_found_again():
 
 
 @pytest.mark.shared
-@pytest.mark.parametrize("a_name, b_name", [("E5_08", "E5_12"), ("E5_12", "E5_14")])
+@pytest.mark.parametrize("a_name, b_name", [("E5_08", "E5_12"), ("E5_01", "E5_12")])
 def test_real_maps_that_bend_are_merged_on_the_keypoint_matches_evidence(shared_data, monkeypatch, a_name, b_name):
     """Two Tango maps of the E5 office that bend against each other: at the right pose
-    their walls agree on only 34-38 % (chance poses between buildings reach 56 %) and
+    their walls agree on only 38-41 % (chance poses between buildings reach 56 %) and
     repeated corridors score nearly as well, so the maps' structure alone declines them.
-    Their keypoint matches agree with the pose far beyond chance (significance 5.6-12,
-    against at most 3 for maps of different places): merged, within the data set's
+    Their keypoint matches agree with the pose far beyond chance (significance 6.8 and
+    12.5, against at most 3 for maps of different places): merged, within the data set's
     protocol; declined without that evidence."""
     import importlib
 

@@ -244,3 +244,30 @@ def test_a_pair_whose_predicted_pose_fails_is_searched(fleet, monkeypatch):
     for k, t in zip((0, 5, 7, 6, 1), m.transforms):
         relative = np.linalg.inv(m.transforms[0].params) @ t.params  # robot k -> robot 1
         assert corner_error(relative, fleet.relative(0, k), fleet.maps[k].shape) <= 2.0
+
+
+@pytest.mark.shared
+def test_reverify_lets_the_keypoint_matches_confirm_a_pose_of_maps_that_bend(shared_data):
+    """E5_08 and E5_12 bend against each other: at the pose align found, their walls agree
+    on 38 %, so the walls alone decline it when it is re-verified (a map grew, or the
+    pose was predicted); with the maps' keypoints, the matches confirm it as align did,
+    and a pose 60 px away is still declined."""
+    from gridmerge.align import default_extractor
+    from gridmerge.merge import reverify
+    from gridmerge.transforms import SimilarityTransform
+
+    e5 = shared_data / "halmstad" / "E5"
+    a, b = gridmerge.load_map(e5 / "E5_08.png"), gridmerge.load_map(e5 / "E5_12.png")
+    ext = default_extractor()
+    features = (ext(a), ext(b))
+    found = gridmerge.align(a, b, rng=0, features=features)
+    assert found.success and "confirmed_by" in found.details
+    walls_only = reverify(a, b, found.transform, runner_up_ratio=0.0)
+    assert not walls_only.success
+    r = reverify(a, b, found.transform, runner_up_ratio=0.0, features=features)
+    assert r.success and r.details["reverified"] and "confirmed_by" in r.details
+    assert "confirmed by the keypoint matches" in r.message
+    capped = reverify(a, b, found.transform, runner_up_ratio=0.0, features=features, max_confidence=0.3)
+    assert not capped.success  # as reliable as the chain that predicted it, no more
+    far = reverify(a, b, SimilarityTransform(translation=(60.0, 0.0)) @ found.transform, runner_up_ratio=0.0, features=features)
+    assert not far.success

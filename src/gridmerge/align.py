@@ -499,10 +499,10 @@ def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     return Estimate(model, inl, src, dst, details=details)
 
 
-def _keypoint_hypotheses(fa: Features, fb: Features, opts: AlignOptions):
-    """Similarity hypotheses from oriented keypoint matches, the matches themselves
-    (``src``, ``dst`` and their ``(index in a, index in b)`` pairs), and the rotation
-    (degrees) and size ratio each keypoint's nearest match proposes."""
+def _candidate_matches(fa: Features, fb: Features, opts: AlignOptions) -> tuple[np.ndarray, np.ndarray]:
+    """``(pairs, rank)``: ``(M, 2)`` int pairs ``(index in a, index in b)``, each keypoint
+    of a with its ``opts.neighbours`` nearest in b, the most distinctive first (at most
+    ``opts.max_matches``), and each pair's neighbour rank (0: the nearest)."""
     # Every keypoint of a gets its k nearest neighbours in b: on real maps the right
     # match is often not the nearest, and the ratio test would throw it away.
     dists, idxs = knn(fa.descriptors, fb.descriptors, opts.neighbours, method=opts.matcher)
@@ -514,7 +514,14 @@ def _keypoint_hypotheses(fa: Features, fb: Features, opts: AlignOptions):
         ratio = np.where(np.isfinite(dists[ia, nxt]) & (nxt > rank), dists[ia, rank] / np.maximum(dists[ia, nxt], 1e-12), 1.0)
     order = np.argsort(ratio, kind="stable")[: opts.max_matches]
     ia, rank = ia[order], rank[order]
-    pairs = np.stack([ia, idxs[ia, rank]], axis=1)
+    return np.stack([ia, idxs[ia, rank]], axis=1), rank
+
+
+def _keypoint_hypotheses(fa: Features, fb: Features, opts: AlignOptions):
+    """Similarity hypotheses from oriented keypoint matches, the matches themselves
+    (``src``, ``dst`` and their ``(index in a, index in b)`` pairs), and the rotation
+    (degrees) and size ratio each keypoint's nearest match proposes."""
+    pairs, rank = _candidate_matches(fa, fb, opts)
     src, dst = _correspondences(fa, fb, pairs)
     angle = np.deg2rad(fa.angle[pairs[:, 0]] - fb.angle[pairs[:, 1]])
     scale = fa.size[pairs[:, 0]] / np.maximum(fb.size[pairs[:, 1]], 1e-9)
@@ -953,7 +960,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
         if rival is not None:
             details["keypoint_evidence"]["rival_significance"] = round(rival, 3)
         if matched_confidence > confidence and _full_wall(v) >= opts.min_wall_agreement_matched:
-            details["confirmed_by"] = f"the keypoint matches: {evidence.consistent} places agree, where chance gives {evidence.expected:.1f}"
+            details["confirmed_by"] = _confirmed_by(evidence)
             return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched_confidence, matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
 
@@ -989,6 +996,25 @@ def _matched(judge: _Judge, best: AffineTransform, candidates: list[AffineTransf
                  for t in candidates if judge.rival(best, t)), default=0.0)
     apart = _ramp((evidence.significance - rival) / _MATCHED_SPAN)
     return evidence, rival, math.sqrt(own * apart)
+
+
+def _matched_alone(fa: Features, fb: Features, t: AffineTransform, opts: AlignOptions) -> tuple[MatchEvidence, float] | None:
+    """``(evidence, confidence)`` of pose ``t`` (b's pixels -> a's, the features' frames)
+    from the keypoint matches alone, with no rival to weigh (:func:`_matched` without
+    them): for a pose known without a search, whose ambiguity its source settled (a
+    pose predicted through other maps' confident alignments, or this pair's own earlier
+    alignment, re-verified after a map grew). ``None`` without keypoints."""
+    if fa is None or fb is None or len(fa) == 0 or len(fb) == 0:
+        return None
+    pairs, _ = _candidate_matches(fa, fb, opts)
+    if len(pairs) == 0:
+        return None
+    evidence = match_evidence(fa.xy, fb.xy, pairs, t, radius=_MATCH_RADIUS, separation=_MATCH_SEPARATION)
+    return evidence, _ramp((evidence.significance - _MATCHED_FROM) / _MATCHED_SPAN)
+
+
+def _confirmed_by(evidence: MatchEvidence) -> str:
+    return f"the keypoint matches: {evidence.consistent} places agree, where chance gives {evidence.expected:.1f}"
 
 
 def _ramp(x: float) -> float:
@@ -1152,7 +1178,7 @@ def align(
         matches=int(len(est.src)),
         keypoints=(len(fa), len(fb)),
         method=method,
-        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}" + _matched_note(est),
+        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}" + (_confirmed_note(est.details) if est.matched else ""),
         elapsed_s=time.perf_counter() - t0,
         verification=v,
         inlier_xy=inlier_xy,
@@ -1221,7 +1247,7 @@ _NUDGE_GAIN = 0.1
 #: Directions in which the best pose is shifted by _OTHER_POSE_PX to look for a rival.
 _SHIFT_DIRECTIONS = 24
 #: Keypoint evidence (:func:`_matched`): a match agrees with a pose within this many of
-#: a's pixels (bending maps), and agreeing keypoints count once per cell of this size.
+#: a's pixels (bending maps), and agreeing keypoints this close to a counted one do not count.
 _MATCH_RADIUS = 8.0
 _MATCH_SEPARATION = 20.0
 #: Significance (-log10 of the chance probability) from which the matches add confidence,
@@ -1288,9 +1314,9 @@ def _shifted(f: Features, offset: np.ndarray) -> Features:
     return f if not offset.any() else replace(f, xy=f.xy + offset)
 
 
-def _matched_note(est: Estimate) -> str:
-    """What the message adds when the keypoint matches confirmed the pose."""
-    return f" (confirmed by {est.details['confirmed_by']})" if est.matched and "confirmed_by" in est.details else ""
+def _confirmed_note(details: dict) -> str:
+    """What a message adds when the keypoint matches confirmed the pose."""
+    return f" (confirmed by {details['confirmed_by']})" if "confirmed_by" in details else ""
 
 
 def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool = True,

@@ -462,9 +462,11 @@ class MatchEvidence:
     Attributes
     ----------
     consistent : int
-        Places of a (cells of ``separation`` pixels) holding a keypoint with a match that
-        agrees with the transform within ``radius``: clusters of keypoints on one corner
-        (SIFT gives one per orientation, repeated objects give several) count once.
+        Places of a holding a keypoint with a match that agrees with the transform within
+        ``radius``: such keypoints in a's order, each counted only when no counted one
+        lies within ``separation``, so that clusters of keypoints on one corner (SIFT gives
+        one per orientation, repeated objects give several) count once, wherever the
+        map's origin is.
     expected : float
         How many of a's keypoints would agree by chance (Poisson mean): the sum over a's
         matched keypoints of the chance that any of their matches is one of the b
@@ -560,7 +562,7 @@ def match_evidence(
         Distance (a's pixels) within which a match agrees with ``transform``; generous,
         for maps that bend.
     separation : float
-        Consistent keypoints closer than this (cells of this size) count once.
+        Consistent keypoints closer than this to a counted one do not count.
 
     Returns
     -------
@@ -577,7 +579,7 @@ def match_evidence(
     >>> right = np.stack([np.arange(30), np.arange(30)], axis=1)   # 30 true matches
     >>> wrong = np.stack([np.arange(30, 400), rng.permutation(np.arange(30, 400))], axis=1)
     >>> e = match_evidence(xy_a, xy_b, np.vstack([right, wrong]), t)
-    >>> e.consistent >= 30, e.significance > 20
+    >>> e.consistent > 20, e.significance > 20
     (True, True)
     >>> match_evidence(xy_a, xy_b, wrong, t).significance < 2
     True
@@ -590,11 +592,23 @@ def match_evidence(
     moved = transform(xy_b)
     ia, ib = pairs[:, 0], pairs[:, 1]
     agree = np.hypot(*(moved[ib] - xy_a[ia]).T) < radius
-    places = np.unique(np.floor(xy_a[ia[agree]] / separation).astype(np.int64), axis=0)
+    places = _spread(xy_a[np.unique(ia[agree])], separation)
     # The chance of each matched keypoint of a: its m matches drawn at random from b's
     # keypoints, at least one among the n that the transform lays within the radius.
     keys, m = np.unique(ia, return_counts=True)
     n = _neighbour_counts(moved, xy_a[keys], radius)
     chance = 1.0 - (1.0 - np.minimum(n / len(xy_b), 1.0)) ** m
     expected = float(chance.sum())
-    return MatchEvidence(len(places), expected, _poisson_significance(len(places), expected))
+    return MatchEvidence(places, expected, _poisson_significance(places, expected))
+
+
+def _spread(points: np.ndarray, separation: float) -> int:
+    """How many of ``points`` (``(K, 2)``, in order) are kept when each is kept only if no
+    kept one lies within ``separation``: the same count wherever the map's origin is."""
+    kept = np.empty((len(points), 2))
+    n = 0
+    for p in points:
+        if n == 0 or float(np.min(np.hypot(kept[:n, 0] - p[0], kept[:n, 1] - p[1]))) >= separation:
+            kept[n] = p
+            n += 1
+    return n

@@ -44,8 +44,11 @@ from .align import (
     METHODS,
     AlignOptions,
     AlignResult,
+    _confirmed_by,
+    _confirmed_note,
     _decline_reason,
     _full_wall,
+    _matched_alone,
     _scale_disagreement,
     _structural_confidence,
     align,
@@ -411,7 +414,7 @@ def _run_pair(job: _PairJob) -> AlignResult:
     p = job.prior
     if p is not None:
         return reverify(job.a, job.b, p.transform, method=job.method, options=job.options, rng=job.seed,
-                        runner_up_ratio=p.runner_up_ratio, max_confidence=p.confidence)
+                        runner_up_ratio=p.runner_up_ratio, max_confidence=p.confidence, features=job.features)
     return align(job.a, job.b, method=job.method, options=job.options, rng=job.seed, features=job.features)
 
 
@@ -438,6 +441,7 @@ def reverify(
     runner_up_ratio: float = 1.0,
     max_confidence: float = 1.0,
     max_shift: float = 12.0,
+    features: tuple[Features | None, Features | None] | None = None,
 ) -> AlignResult:
     """Check a known transform of ``b`` onto ``a`` against the maps, refining it locally.
 
@@ -460,6 +464,11 @@ def reverify(
         chain that predicted it).
     max_shift : float
         Refinement moving b's corners farther than this (pixels) is refused.
+    features : (Features or None, Features or None), optional
+        The maps' keypoints (as :func:`align` takes them). When the walls alone would
+        decline the pose (maps that bend), the keypoint matches may still confirm it, as
+        in :func:`align`, up to ``max_confidence``; the pose's ambiguity was settled
+        where it came from, so no rival is weighed.
 
     Returns
     -------
@@ -482,6 +491,17 @@ def reverify(
     conf = min(float(max_confidence), _structural_confidence(_full_wall(v), runner_up_ratio))
     message = _decline_reason(0, v, conf, opts, need_inliers=False, scale_off=_scale_disagreement(t, ca, cb))
     full = crop_to_full(t, oa, ob)
+    details = {"reverified": True, "runner_up_ratio": float(runner_up_ratio), "refine_shift_px": round(shift, 3)}
+    if message and features is not None and METHODS[method].verified:
+        matched = _matched_alone(features[0], features[1], full, opts)
+        if matched is not None and min(float(max_confidence), matched[1]) > conf:
+            evidence, own = matched
+            details["keypoint_evidence"] = {**evidence.to_dict(), "confidence": round(own, 4)}
+            retry = _decline_reason(0, v, min(float(max_confidence), own), opts, need_inliers=False,
+                                    scale_off=_scale_disagreement(t, ca, cb), matched=True)
+            if not retry:
+                conf, message = min(float(max_confidence), own), ""
+                details["confirmed_by"] = _confirmed_by(evidence)
     ok = not message
     return AlignResult(
         success=ok,
@@ -494,10 +514,10 @@ def reverify(
         matches=0,
         keypoints=(0, 0),
         method=method,
-        message=message or f"re-verified, confidence {conf:.2f}",
+        message=message or f"re-verified, confidence {conf:.2f}" + _confirmed_note(details),
         elapsed_s=time.perf_counter() - t0,
         verification=v,
-        details={"reverified": True, "runner_up_ratio": float(runner_up_ratio), "refine_shift_px": round(shift, 3)},
+        details=details,
     )
 
 
