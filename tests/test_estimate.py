@@ -199,3 +199,32 @@ def test_neighbour_counts_are_those_of_all_pairs():
     points, queries = rng.uniform(-50, 300, (3000, 2)), rng.uniform(-80, 330, (500, 2))
     brute = (np.hypot(*(points[None] - queries[:, None]).transpose(2, 0, 1)) <= 8.0).sum(axis=1)
     assert np.array_equal(_neighbour_counts(points, queries, 8.0), brute)
+
+
+def test_match_evidence_with_orientations_counts_only_matches_that_turn_with_the_pose():
+    """With the keypoints' orientations and sizes, a match agrees only when they differ
+    by the pose's rotation and scale: true matches gain significance (chance must now
+    also get the orientation right), and matches in the right place whose keypoints do
+    not turn with the pose do not count."""
+    from gridmerge.estimate import match_evidence
+
+    rng, xy_b, t, xy_a = _scene(11)
+    n = len(xy_b)
+    angle_b = rng.uniform(0, 360, n)
+    size_b = rng.uniform(2, 20, n)
+    turn = math.degrees(0.4)  # _scene's rotation; its scale is 1.1
+    angle_a = (angle_b + turn + rng.normal(0, 3, n)) % 360.0
+    size_a = size_b * 1.1
+    oriented = {"angles": (angle_a, angle_b), "sizes": (size_a, size_b)}
+    pairs = _random_pairs(rng, n, n, 3)
+    pairs[: 3 * 8 : 3, 1] = np.arange(8)  # 8 true matches among random ones
+    plain = match_evidence(xy_a, xy_b, pairs, t)
+    turned = match_evidence(xy_a, xy_b, pairs, t, **oriented)
+    assert turned.consistent >= 8 and turned.significance > plain.significance + 3
+    # Random matches that never pick a keypoint's true counterpart (one that does agrees
+    # in orientation as in position: that is a true match, not chance).
+    others = np.array([(i, j) for i in range(n) for j in rng.choice(np.delete(np.arange(n), i), 3, replace=False)])
+    assert match_evidence(xy_a, xy_b, others, t, **oriented).significance < 3.0
+    # The same places, but b's keypoints turned the other way: nothing agrees.
+    wrong = {"angles": ((angle_b - turn) % 360.0, angle_b), "sizes": (size_a, size_b)}
+    assert match_evidence(xy_a, xy_b, pairs, t, **wrong).consistent <= 1

@@ -547,6 +547,10 @@ def match_evidence(
     *,
     radius: float = 8.0,
     separation: float = 20.0,
+    angles: tuple[np.ndarray, np.ndarray] | None = None,
+    sizes: tuple[np.ndarray, np.ndarray] | None = None,
+    angle_tolerance: float = 20.0,
+    size_tolerance: float = 1.5,
 ) -> MatchEvidence:
     """How strongly the keypoint matches support ``transform`` beyond chance.
 
@@ -563,6 +567,18 @@ def match_evidence(
         for maps that bend.
     separation : float
         Consistent keypoints closer than this to a counted one do not count.
+    angles, sizes : ((Na,), (Nb,)) float arrays, optional
+        The keypoints' orientations (degrees, OpenCV's convention) and sizes. With them,
+        a match agrees only when its two keypoints' orientations also differ by the
+        transform's rotation (within ``angle_tolerance`` degrees) and their sizes by its
+        scale (within a factor ``size_tolerance``); the chance of that is the share of all
+        the matches that do (most matches are wrong, so it is about what chance gives on
+        these maps' orientations, which walls concentrate), and it multiplies each
+        keypoint's chance of agreeing in position. That product holds where the
+        keypoints a pose lays near each other are unrelated, as at the wrong poses the
+        test must reject; at a right pose a random pick of the very same corner would
+        agree in orientation too, so the significance of right poses is overstated,
+        never that of wrong ones.
 
     Returns
     -------
@@ -592,12 +608,23 @@ def match_evidence(
     moved = transform(xy_b)
     ia, ib = pairs[:, 0], pairs[:, 1]
     agree = np.hypot(*(moved[ib] - xy_a[ia]).T) < radius
+    share = 1.0
+    if angles is not None and sizes is not None:
+        m = np.asarray(transform.params, dtype=float)
+        rotation = math.degrees(math.atan2(m[1, 0], m[0, 0]))
+        scale = math.sqrt(abs(float(np.linalg.det(m[:2, :2])))) or 1.0
+        turn = (np.asarray(angles[0], float)[ia] - np.asarray(angles[1], float)[ib] - rotation + 180.0) % 360.0 - 180.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            grow = np.log(np.asarray(sizes[0], float)[ia] / np.asarray(sizes[1], float)[ib] / scale)
+        alike = (np.abs(turn) < angle_tolerance) & (np.abs(grow) < math.log(size_tolerance))
+        share = float(alike.mean())
+        agree &= alike
     places = _spread(xy_a[np.unique(ia[agree])], separation)
     # The chance of each matched keypoint of a: its m matches drawn at random from b's
     # keypoints, at least one among the n that the transform lays within the radius.
     keys, m = np.unique(ia, return_counts=True)
     n = _neighbour_counts(moved, xy_a[keys], radius)
-    chance = 1.0 - (1.0 - np.minimum(n / len(xy_b), 1.0)) ** m
+    chance = 1.0 - (1.0 - np.minimum(n / len(xy_b) * share, 1.0)) ** m
     expected = float(chance.sum())
     return MatchEvidence(places, expected, _poisson_significance(places, expected))
 
