@@ -610,9 +610,9 @@ def match_evidence(
     agree = np.hypot(*(moved[ib] - xy_a[ia]).T) < radius
     share = 1.0
     if angles is not None and sizes is not None:
-        m = np.asarray(transform.params, dtype=float)
-        rotation = math.degrees(math.atan2(m[1, 0], m[0, 0]))
-        scale = math.sqrt(abs(float(np.linalg.det(m[:2, :2])))) or 1.0
+        mat = np.asarray(transform.params, dtype=float)
+        rotation = math.degrees(math.atan2(mat[1, 0], mat[0, 0]))
+        scale = math.sqrt(abs(float(np.linalg.det(mat[:2, :2])))) or 1.0
         turn = (np.asarray(angles[0], float)[ia] - np.asarray(angles[1], float)[ib] - rotation + 180.0) % 360.0 - 180.0
         with np.errstate(divide="ignore", invalid="ignore"):
             grow = np.log(np.asarray(sizes[0], float)[ia] / np.asarray(sizes[1], float)[ib] / scale)
