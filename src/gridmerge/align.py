@@ -987,13 +987,13 @@ def _matched(judge: _Judge, best: AffineTransform, candidates: list[AffineTransf
     """
     if len(pairs) == 0:
         return None
-    evidence = match_evidence(fa.xy, fb.xy, pairs, best, radius=_MATCH_RADIUS, separation=_MATCH_SEPARATION, **_oriented(fa, fb))
-    own = _ramp((evidence.significance - _MATCHED_FROM) / _MATCHED_SPAN)
+    oriented = _oriented(fa, fb)
+    evidence = _pose_evidence(fa, fb, pairs, best, oriented)
+    own = _own_confidence(evidence)
     if own <= confidence:
         return evidence, None, own
     others = pairs[best.residuals(src, dst) >= _RIVAL_OVERLAP_PX]
-    rival = max((match_evidence(fa.xy, fb.xy, others, t, radius=_MATCH_RADIUS, separation=_MATCH_SEPARATION, **_oriented(fa, fb)).significance
-                 for t in candidates if judge.rival(best, t)), default=0.0)
+    rival = max((_pose_evidence(fa, fb, others, t, oriented).significance for t in candidates if judge.rival(best, t)), default=0.0)
     apart = _ramp((evidence.significance - rival) / _MATCHED_SPAN)
     return evidence, rival, math.sqrt(own * apart)
 
@@ -1009,8 +1009,19 @@ def _matched_alone(fa: Features, fb: Features, t: AffineTransform, opts: AlignOp
     pairs, _ = _candidate_matches(fa, fb, opts)
     if len(pairs) == 0:
         return None
-    evidence = match_evidence(fa.xy, fb.xy, pairs, t, radius=_MATCH_RADIUS, separation=_MATCH_SEPARATION, **_oriented(fa, fb))
-    return evidence, _ramp((evidence.significance - _MATCHED_FROM) / _MATCHED_SPAN)
+    evidence = _pose_evidence(fa, fb, pairs, t, _oriented(fa, fb))
+    return evidence, _own_confidence(evidence)
+
+
+def _pose_evidence(fa: Features, fb: Features, pairs: np.ndarray, t: AffineTransform, oriented: dict) -> MatchEvidence:
+    """:func:`gridmerge.estimate.match_evidence` of pose ``t`` with this module's radius
+    and separation; ``oriented``: :func:`_oriented` of the features."""
+    return match_evidence(fa.xy, fb.xy, pairs, t, radius=_MATCH_RADIUS, separation=_MATCH_SEPARATION, **oriented)
+
+
+def _own_confidence(evidence: MatchEvidence) -> float:
+    """0 at significance :data:`_MATCHED_FROM`, 1 :data:`_MATCHED_SPAN` decades above."""
+    return _ramp((evidence.significance - _MATCHED_FROM) / _MATCHED_SPAN)
 
 
 def _oriented(fa: Features, fb: Features) -> dict:
@@ -1186,7 +1197,7 @@ def align(
         matches=int(len(est.src)),
         keypoints=(len(fa), len(fb)),
         method=method,
-        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}" + (_confirmed_note(est.details) if est.matched else ""),
+        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}" + _confirmed_note(est.details),
         elapsed_s=time.perf_counter() - t0,
         verification=v,
         inlier_xy=inlier_xy,

@@ -488,8 +488,9 @@ def reverify(
         if report.accepted:
             t, shift = refined, float(report.shift_px)
     v = verify(ca, cb, t, tolerance=opts.wall_tolerance)
+    scale_off = _scale_disagreement(t, ca, cb)
     conf = min(float(max_confidence), _structural_confidence(_full_wall(v), runner_up_ratio))
-    message = _decline_reason(0, v, conf, opts, need_inliers=False, scale_off=_scale_disagreement(t, ca, cb))
+    message = _decline_reason(0, v, conf, opts, need_inliers=False, scale_off=scale_off)
     full = crop_to_full(t, oa, ob)
     details = {"reverified": True, "runner_up_ratio": float(runner_up_ratio), "refine_shift_px": round(shift, 3)}
     if message and features is not None and METHODS[method].verified:
@@ -497,10 +498,9 @@ def reverify(
         if matched is not None and min(float(max_confidence), matched[1]) > conf:
             evidence, own = matched
             details["keypoint_evidence"] = {**evidence.to_dict(), "confidence": round(own, 4)}
-            retry = _decline_reason(0, v, min(float(max_confidence), own), opts, need_inliers=False,
-                                    scale_off=_scale_disagreement(t, ca, cb), matched=True)
-            if not retry:
-                conf, message = min(float(max_confidence), own), ""
+            capped = min(float(max_confidence), own)
+            if not _decline_reason(0, v, capped, opts, need_inliers=False, scale_off=scale_off, matched=True):
+                conf, message = capped, ""
                 details["confirmed_by"] = _confirmed_by(evidence)
     ok = not message
     return AlignResult(
