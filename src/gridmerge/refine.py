@@ -39,7 +39,7 @@ import numpy as np
 from .grid import OccupancyGrid
 from .transforms import SimilarityTransform
 
-__all__ = ["refine_direct", "RefineReport", "prepare_fields"]
+__all__ = ["refine_direct", "RefineReport", "prepare_fields", "WallICP"]
 
 
 @dataclass(frozen=True)
@@ -589,3 +589,92 @@ def refine_direct(
     sa, sb = (p[0, 0] + p[1, 1]) / 2.0, (p[1, 0] - p[0, 1]) / 2.0
     p = np.array([[sa, -sb, p[0, 2]], [sb, sa, p[1, 2]], [0.0, 0.0, 1.0]])
     return SimilarityTransform(p), report
+
+
+class WallICP:
+    """Iterative closest point on the walls of two maps: the last, precise step of a pose.
+
+    :func:`refine_direct` matches smoothed occupancy, whose optimum on noisy maps with
+    thin walls (spurious and missed hits, a resolution change) can lie a few pixels from
+    where the walls themselves coincide; at 2-3 px off, walls 1-2 cells thick no longer
+    agree. ICP pairs each wall cell of one map with the nearest wall cell of the other
+    (both ways, within a radius that shrinks to the verification's tolerance) and fits a
+    similarity to the pairs, so it converges where walls lie on walls.
+
+    The nearest wall cells of both maps are found once (a distance transform with
+    labels), so polishing many poses of one pair costs little.
+
+    Parameters
+    ----------
+    a, b : OccupancyGrid
+    radii : sequence of float
+        Pairing radius (a's pixels) of each round, large to small.
+    max_points : int
+        Wall cells used per map at most (an even stride).
+
+    Examples
+    --------
+    >>> from gridmerge import samples
+    >>> from gridmerge.transforms import SimilarityTransform, corner_error
+    >>> a, b, truth = samples.robot_pair(0, scale=1.0, rotation_deg=40)
+    >>> start = SimilarityTransform(translation=(3, -2)) @ SimilarityTransform(truth)
+    >>> polished = WallICP(a, b).polish(start)
+    >>> corner_error(polished, truth, b.shape) < 1.0
+    True
+    """
+
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, *, radii=(4.0, 3.0, 2.0, 2.0), max_points: int = 20000):
+        self.radii = tuple(float(r) for r in radii)
+        self._maps = []
+        for g in (a, b):
+            walls = g.occupied()
+            ys, xs = np.nonzero(walls)
+            if len(xs) == 0:
+                self._maps.append(None)
+                continue
+            dist, labels = cv2.distanceTransformWithLabels((~walls).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+            nearest = np.zeros((int(labels.max()) + 1, 2))
+            nearest[labels[ys, xs]] = np.stack([xs, ys], axis=1)
+            cells = np.stack([xs, ys], axis=1).astype(float)[:: max(1, len(xs) // max(1, int(max_points)))]
+            self._maps.append((dist, labels, nearest, cells))
+
+    def _pairs(self, which: int, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(keep, nearest)``: which ``points`` (pixels of map ``which``) lie within
+        ``radius`` of one of its walls, and that wall cell."""
+        dist, labels, nearest, _ = self._maps[which]
+        h, w = dist.shape
+        p = np.rint(points).astype(np.int64)
+        keep = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+        out = np.zeros_like(points)
+        keep[keep] = dist[p[keep, 1], p[keep, 0]] <= radius
+        out[keep] = nearest[labels[p[keep, 1], p[keep, 0]]]
+        return keep, out
+
+    def polish(self, t: SimilarityTransform, *, rounds: int = 3, min_pairs: int = 20, keep_scale: bool = True) -> SimilarityTransform:
+        """``t`` (b pixels -> a pixels) moved to where the walls coincide; ``t`` itself
+        when either map has no walls or too few walls pair up."""
+        if self._maps[0] is None or self._maps[1] is None:
+            return t
+        pa, pb = self._maps[0][3], self._maps[1][3]
+        m = np.asarray(t.params, dtype=float)
+        scale = math.sqrt(abs(float(np.linalg.det(m[:2, :2])))) or 1.0
+        for radius in self.radii:
+            for _ in range(rounds):
+                inv = np.linalg.inv(m)
+                k1, q1 = self._pairs(0, pb @ m[:2, :2].T + m[:2, 2], radius)
+                k2, q2 = self._pairs(1, pa @ inv[:2, :2].T + inv[:2, 2], radius * math.sqrt(abs(float(np.linalg.det(inv[:2, :2])))))
+                src = np.vstack([pb[k1], q2[k2]])
+                dst = np.vstack([q1[k1], pa[k2]])
+                if len(src) < min_pairs:
+                    return t
+                fit = SimilarityTransform.from_estimate(src, dst)
+                if not fit:
+                    return t
+                m = np.asarray(fit.params, dtype=float)
+                if keep_scale:
+                    # The best rotation at a fixed scale is the free fit's; the
+                    # translation then maps the centroids onto each other.
+                    r = m[:2, :2] * (scale / math.hypot(m[0, 0], m[1, 0]))
+                    m = np.array([[r[0, 0], r[0, 1], 0.0], [r[1, 0], r[1, 1], 0.0], [0.0, 0.0, 1.0]])
+                    m[:2, 2] = dst.mean(axis=0) - r @ src.mean(axis=0)
+        return SimilarityTransform(m)
