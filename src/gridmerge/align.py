@@ -677,7 +677,8 @@ class _Judge:
     def polished(self, t: AffineTransform, score) -> tuple[float, AffineTransform]:
         """``(score, pose)``: refined pose ``t`` polished by ICP on the walls
         (:class:`gridmerge.refine.WallICP`) when that raises ``score`` by
-        :data:`_POLISH_GAIN` and moves b's corners less than :data:`_WALL_LED_REACH`;
+        :data:`_POLISH_GAIN` and moves b's corners no farther than
+        :data:`_POLISH_REACH`;
         ``t`` and its score otherwise. With the maps' resolutions trusted, only poses
         within the refinement's scale prior range of their ratio are polished.
 
@@ -696,7 +697,7 @@ class _Judge:
         if self._icp is None:
             self._icp = WallICP(self.a, self.b)
         p = self._icp.polish(SimilarityTransform(t.params))
-        if self.far_apart(p, t, _WALL_LED_REACH):
+        if self.far_apart(p, t, _POLISH_REACH):
             return value, t
         gained = score(p)
         return (gained, p) if gained > value * (1.0 + _POLISH_GAIN) else (value, t)
@@ -1278,6 +1279,11 @@ _WALL_LED_REACH = 30.0
 #: smoothed cells, which use every known cell, are the more precise (simulated pair 40 of
 #: seed 0: ICP scored 4 % more and lay 2.2 px from the truth, the refinement 0.9 px).
 _POLISH_GAIN = 0.1
+#: How far (a's pixels, at b's corners) polishing may move a pose: as far as a refinement
+#: may. Farther, ICP has slid to another fit, not to where the refinement stopped short
+#: (in a simulated fleet of 8 robots a chance pose slid 15 px and rose from 0.37 to 0.49,
+#: enough to be merged; Halmstad's right poses moved 2-7 px, one 12.3 px).
+_POLISH_REACH = _REFINE_REACH
 #: Wall cells (both maps, as sampled by the scorer) a candidate must compare for its quick
 #: score to count fully.
 _MIN_WALLS_COMPARED = 40
