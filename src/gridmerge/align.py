@@ -602,6 +602,7 @@ class _Judge:
         self._known_b: np.ndarray | None = None  # a sample of b's known cells (rival)
         self._shared: dict = {}  # pose -> that sample moved into a, and which land on a's known cells
         self._icp: WallICP | None = None
+        self._polished: dict = {}  # pose -> its polish (whatever the score)
 
     def _later(self, fn, *args) -> Future:
         """``fn(*args)`` in the helper thread, or now without one."""
@@ -694,9 +695,12 @@ class _Judge:
             # scale (simulated pair 3 of seed 2: a keypoint pose 7 % off in scale rose
             # to confidence 0.7, 25 px from the truth, and the search stopped there).
             return value, t
-        if self._icp is None:
-            self._icp = WallICP(self.a, self.b)
-        p = self._icp.polish(SimilarityTransform(t.params))
+        k = self._key(t)
+        if k not in self._polished:
+            if self._icp is None:
+                self._icp = WallICP(self.a, self.b)
+            self._polished[k] = self._icp.polish(SimilarityTransform(t.params))
+        p = self._polished[k]
         if self.far_apart(p, t, _POLISH_REACH):
             return value, t
         gained = score(p)
