@@ -12,7 +12,8 @@ Methods
     match proposes a whole similarity from the keypoints' orientations and sizes), and the
     maps' walls (wall-direction histograms for the rotation, FFT correlation of wall images
     for the translation, :mod:`gridmerge.correlate`). All are scored by wall agreement, the
-    best distinct ones refined to sub-pixel precision against the cells of both maps, and
+    best distinct ones refined to sub-pixel precision against the cells of both maps (then
+    polished by ICP on the walls where that makes them agree clearly better), and
     the winner's confidence combines its wall agreement with how clearly it beats every
     clearly different pose (repeated structure makes them close): the other candidates
     that move the shared part of b by 25 px or more, and the winner itself shifted by
@@ -678,8 +679,7 @@ class _Judge:
     def polished(self, t: AffineTransform, score) -> tuple[float, AffineTransform]:
         """``(score, pose)``: refined pose ``t`` polished by ICP on the walls
         (:class:`gridmerge.refine.WallICP`) when that raises ``score`` by
-        :data:`_POLISH_GAIN` and moves b's corners no farther than
-        :data:`_POLISH_REACH`;
+        :data:`_POLISH_GAIN` and moves b's corners no farther than :data:`_POLISH_REACH`;
         ``t`` and its score otherwise. With the maps' resolutions trusted, only poses
         within the refinement's scale prior range of their ratio are polished.
 
