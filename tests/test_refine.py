@@ -294,3 +294,38 @@ def test_wall_icp_without_walls_returns_the_pose_itself(robots):
     empty = OccupancyGrid(np.zeros((50, 60)))
     assert WallICP(a, empty).polish(truth) is truth
     assert WallICP(empty, a).polish(truth) is truth
+
+
+@pytest.mark.parametrize("rows", [7, 40, None])
+def test_nearest_wall_table_in_blocks_finds_the_nearest_wall(rows):
+    from gridmerge.refine import _NO_WALL, _nearest_walls
+
+    rng = np.random.default_rng(3)
+    walls = rng.random((90, 70)) < 0.01
+    walls[40, 10:60] = True
+    table = _nearest_walls(walls, 6, rows=rows)
+    wy, wx = np.nonzero(walls)
+    for y in range(walls.shape[0]):
+        for x in range(walls.shape[1]):
+            exact = np.hypot(wx - x, wy - y).min()
+            dx, dy = (int(v) for v in table[y, x])
+            if dx == _NO_WALL:
+                assert exact > 6 - 0.5
+            else:
+                assert walls[y + dy, x + dx]
+                assert math.hypot(dx, dy) <= exact + 0.5  # the transform's metric is near Euclidean
+
+
+def test_chamfer_norms_are_opencvs_distances():
+    """The nearest-wall table keeps offsets, not distances: the pairing radius is compared
+    with the distance OpenCV's transform gives for that offset, as before the table."""
+    import cv2
+
+    from gridmerge.refine import WALL_ICP_REACH, _chamfer_norms
+
+    n = WALL_ICP_REACH
+    img = np.ones((2 * n + 1, 2 * n + 1), np.uint8)
+    img[n, n] = 0
+    d = cv2.distanceTransform(img, cv2.DIST_L2, 5)
+    ys, xs = np.mgrid[-n : n + 1, -n : n + 1]
+    assert np.allclose(_chamfer_norms()[np.abs(ys), np.abs(xs)], d, atol=1e-3)

@@ -601,8 +601,9 @@ class WallICP:
     (both ways, within a radius that shrinks to the verification's tolerance) and fits a
     similarity to the pairs, so it converges where walls lie on walls.
 
-    The nearest wall cells of both maps are found once (a distance transform with
-    labels), so polishing many poses of one pair costs little.
+    The nearest wall cell of every cell of both maps is found once (a distance transform
+    with labels, kept as 2-byte offsets within :data:`WALL_ICP_REACH`), so polishing many
+    poses of one pair costs little.
 
     Parameters
     ----------
@@ -632,22 +633,24 @@ class WallICP:
             if len(xs) == 0:
                 self._maps.append(None)
                 continue
-            dist, labels = cv2.distanceTransformWithLabels((~walls).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
-            nearest = np.zeros((int(labels.max()) + 1, 2))
-            nearest[labels[ys, xs]] = np.stack([xs, ys], axis=1)
             cells = np.stack([xs, ys], axis=1).astype(float)[:: max(1, len(xs) // max(1, int(max_points)))]
-            self._maps.append((dist, labels, nearest, cells))
+            self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), cells))
 
     def _pairs(self, which: int, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """``(keep, nearest)``: which ``points`` (pixels of map ``which``) lie within
         ``radius`` of one of its walls, and that wall cell."""
-        dist, labels, nearest, _ = self._maps[which]
-        h, w = dist.shape
+        offsets, _ = self._maps[which]
+        h, w = offsets.shape[:2]
         p = np.rint(points).astype(np.int64)
         keep = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+        o = offsets[p[keep, 1], p[keep, 0]].astype(np.int64)
+        found = o[:, 0] != _NO_WALL
+        near = np.zeros(len(o), bool)
+        near[found] = _chamfer_norms()[np.abs(o[found, 1]), np.abs(o[found, 0])] <= radius
         out = np.zeros_like(points)
-        keep[keep] = dist[p[keep, 1], p[keep, 0]] <= radius
-        out[keep] = nearest[labels[p[keep, 1], p[keep, 0]]]
+        idx = np.flatnonzero(keep)[near]
+        out[idx] = p[idx] + o[near]
+        keep[keep] = near
         return keep, out
 
     def polish(self, t: SimilarityTransform, *, rounds: int = 3, min_pairs: int = 20, keep_scale: bool = True) -> SimilarityTransform:
@@ -655,7 +658,7 @@ class WallICP:
         when either map has no walls or too few walls pair up."""
         if self._maps[0] is None or self._maps[1] is None:
             return t
-        pa, pb = self._maps[0][3], self._maps[1][3]
+        pa, pb = self._maps[0][1], self._maps[1][1]
         m = np.asarray(t.params, dtype=float)
         scale = math.sqrt(abs(float(np.linalg.det(m[:2, :2])))) or 1.0
         for radius in self.radii:
@@ -678,3 +681,68 @@ class WallICP:
                     m = np.array([[r[0, 0], r[0, 1], 0.0], [r[1, 0], r[1, 1], 0.0], [0.0, 0.0, 1.0]])
                     m[:2, 2] = dst.mean(axis=0) - r @ src.mean(axis=0)
         return SimilarityTransform(m)
+
+
+#: How far (pixels) :class:`WallICP` looks for a map's nearest wall: its pairing radii in
+#: b's pixels at scales down to 1/8.
+WALL_ICP_REACH = 32
+_NO_WALL = -128
+#: OpenCV's 5 x 5 chamfer mask for ``DIST_L2``: steps (1, 0), (1, 1) and (2, 1).
+_CHAMFER_STEPS = ((1, 0, 1.0), (1, 1, 1.4), (2, 1, 2.1969))
+_CHAMFER: list = []
+
+
+def _chamfer_norms() -> np.ndarray:
+    """``[|dy|, |dx|]`` -> the distance ``cv2.distanceTransform`` (``DIST_L2``, mask 5)
+    gives between two cells that far apart, for offsets up to :data:`WALL_ICP_REACH`: the
+    cheapest path of the mask's steps (float32 sums, as OpenCV's)."""
+    if not _CHAMFER:
+        n = WALL_ICP_REACH + 1
+        cost = np.full((n + 2, n + 2), np.inf, np.float32)
+        cost[0, 0] = 0.0
+        steps = [(dy, dx, np.float32(c)) for a, b, c in _CHAMFER_STEPS for dy, dx in {(a, b), (b, a)}]
+        # Every step moves away from the origin (dx + dy grows), so one pass in order of
+        # dx + dy finds each cheapest path.
+        for total in range(1, 2 * n):
+            for y in range(max(0, total - n + 1), min(n, total + 1)):
+                x = total - y
+                best = np.float32(np.inf)
+                for dy, dx, c in steps:
+                    if y - dy >= 0 and x - dx >= 0:
+                        best = min(best, np.float32(cost[y - dy, x - dx] + c))
+                cost[y, x] = best
+        _CHAMFER.append(cost[:n, :n].copy())
+    return _CHAMFER[0]
+
+
+def _nearest_walls(walls: np.ndarray, reach: int, rows: int | None = None) -> np.ndarray:
+    """``(H, W, 2)`` int8 ``(dx, dy)`` from each cell to its nearest wall cell (by a
+    distance transform with labels), ``_NO_WALL`` where none lies within ``reach``.
+
+    Two bytes per cell, computed in blocks of rows with ``reach`` rows of margin: the
+    transform's float distance and integer label per cell, for a whole 4000 x 4000 map,
+    were 128 MB per map."""
+    h, w = walls.shape
+    out = np.full((h, w, 2), _NO_WALL, np.int8)
+    rows = max(1, (1 << 21) // max(1, w)) if rows is None else int(rows)
+    cols = np.arange(w)[None, :]
+    for y0 in range(0, h, rows):
+        y1 = min(h, y0 + rows)
+        ya, yb = max(0, y0 - reach), min(h, y1 + reach)
+        sub = walls[ya:yb]
+        ys, xs = np.nonzero(sub)
+        if len(xs) == 0:
+            continue
+        dist, labels = cv2.distanceTransformWithLabels((~sub).astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+        nx = np.zeros(int(labels.max()) + 1, np.int64)
+        ny = np.zeros_like(nx)
+        nx[labels[ys, xs]] = xs
+        ny[labels[ys, xs]] = ys
+        lab = labels[y0 - ya : y1 - ya]
+        dx = nx[lab] - cols
+        dy = ny[lab] - np.arange(y0 - ya, y1 - ya)[:, None]
+        ok = (dist[y0 - ya : y1 - ya] <= reach) & (np.abs(dx) <= reach) & (np.abs(dy) <= reach)
+        out[y0:y1, :, 0] = np.where(ok, dx, _NO_WALL)
+        out[y0:y1, :, 1] = np.where(ok, dy, 0)
+    return out
+
