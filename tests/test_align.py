@@ -417,6 +417,21 @@ def test_a_pose_turned_a_few_degrees_about_the_shared_part_is_found_again():
     assert min(corner_error(t, truth, b.shape) for t in found) < 1.0
 
 
+def _e5_pair(shared_data, a_name: str, b_name: str):
+    """``(annotation, a, b)`` of an annotated Halmstad E5 sensor pair."""
+    pairs = json.loads((shared_data / "halmstad" / "E5_pairs.json").read_text())["pairs"]
+    pair = next(p for p in pairs if (p["a"], p["b"]) == (a_name, b_name))
+    e5 = shared_data / "halmstad" / "E5"
+    return pair, gridmerge.load_map(e5 / f"{a_name}.png"), gridmerge.load_map(e5 / f"{b_name}.png")
+
+
+def _within_protocol(t, pair) -> bool:
+    """The data set's protocol: the annotated points' median distance within max(20 px,
+    twice the hand fit's residual)."""
+    err = np.median(np.hypot(*(t(np.array(pair["points_b"])) - np.array(pair["points_a"])).T))
+    return bool(err <= max(20.0, 2 * pair["fit_median_residual_px"]))
+
+
 @pytest.mark.shared
 @pytest.mark.parametrize("a_name, b_name", [("E5_08", "E5_12"), ("E5_01", "E5_12")])
 def test_real_maps_that_bend_are_merged_on_the_keypoint_matches_evidence(shared_data, monkeypatch, a_name, b_name):
@@ -429,17 +444,13 @@ def test_real_maps_that_bend_are_merged_on_the_keypoint_matches_evidence(shared_
     import importlib
 
     align_module = importlib.import_module("gridmerge.align")
-    pairs = json.loads((shared_data / "halmstad" / "E5_pairs.json").read_text())["pairs"]
-    pair = next(p for p in pairs if (p["a"], p["b"]) == (a_name, b_name))
-    a = gridmerge.load_map(shared_data / "halmstad" / "E5" / f"{a_name}.png")
-    b = gridmerge.load_map(shared_data / "halmstad" / "E5" / f"{b_name}.png")
+    pair, a, b = _e5_pair(shared_data, a_name, b_name)
     r = align(a, b, rng=0)
     assert r.success, r.message
     assert r.details["confirmed_by"].startswith("the keypoint matches")
     assert r.details["keypoint_evidence"]["significance"] > 5.0
     assert "confirmed by the keypoint matches" in r.message
-    err = np.median(np.hypot(*(r.transform(np.array(pair["points_b"])) - np.array(pair["points_a"])).T))
-    assert err <= max(20.0, 2 * pair["fit_median_residual_px"])
+    assert _within_protocol(r.transform, pair)
     monkeypatch.setattr(align_module, "_matched", lambda *args: None)
     assert not align(a, b, rng=0).success
 
@@ -494,14 +505,10 @@ def test_polishing_on_the_walls_merges_real_maps_that_bend(shared_data, monkeypa
     # smoothed cells, the right pose's walls agree on 40 % and a clearly different pose
     # scores nearly as well (confidence 0.31); polished on the walls, it is merged within
     # the data set's protocol.
-    pairs = json.loads((shared_data / "halmstad" / "E5_pairs.json").read_text())["pairs"]
-    pair = next(p for p in pairs if (p["a"], p["b"]) == ("E5_06", "E5_09"))
-    a = gridmerge.load_map(shared_data / "halmstad" / "E5" / "E5_06.png")
-    b = gridmerge.load_map(shared_data / "halmstad" / "E5" / "E5_09.png")
+    pair, a, b = _e5_pair(shared_data, "E5_06", "E5_09")
     r = align(a, b, rng=0)
     assert r.success, r.message
-    err = np.median(np.hypot(*(r.transform(np.array(pair["points_b"])) - np.array(pair["points_a"])).T))
-    assert err <= max(20.0, 2 * pair["fit_median_residual_px"])
+    assert _within_protocol(r.transform, pair)
     monkeypatch.setattr(importlib.import_module("gridmerge.align")._Judge, "polished", lambda self, t, score: (score(t), t))
     assert not align(a, b, rng=0).success
 

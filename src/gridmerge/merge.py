@@ -495,10 +495,10 @@ def reverify(
     details = {"reverified": True, "runner_up_ratio": float(runner_up_ratio), "refine_shift_px": round(shift, 3)}
     if message and features is not None and METHODS[method].verified:
         matched = _matched_alone(features[0], features[1], full, opts)
-        if matched is not None and min(float(max_confidence), matched[1]) > conf:
-            evidence, own = matched
+        evidence, own = matched if matched is not None else (None, 0.0)
+        capped = min(float(max_confidence), own)
+        if evidence is not None and capped > conf:
             details["keypoint_evidence"] = {**evidence.to_dict(), "confidence": round(own, 4)}
-            capped = min(float(max_confidence), own)
             if not _decline_reason(0, v, capped, opts, need_inliers=False, scale_off=scale_off, matched=True):
                 conf, message = capped, ""
                 details["confirmed_by"] = _confirmed_by(evidence)

@@ -30,6 +30,7 @@ which changes borderline decisions).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -38,6 +39,7 @@ import numpy as np
 
 from .grid import OccupancyGrid
 from .transforms import SimilarityTransform
+from .verify import _strided_cells
 
 __all__ = ["refine_direct", "RefineReport", "prepare_fields", "WallICP"]
 
@@ -629,12 +631,10 @@ class WallICP:
         self._maps = []
         for g in (a, b):
             walls = g.occupied()
-            ys, xs = np.nonzero(walls)
-            if len(xs) == 0:
+            if not walls.any():
                 self._maps.append(None)
                 continue
-            cells = np.stack([xs, ys], axis=1).astype(float)[:: max(1, len(xs) // max(1, int(max_points)))]
-            self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), cells))
+            self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), _strided_cells(walls, max_points)))
 
     def _pairs(self, which: int, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """``(keep, nearest)``: which ``points`` (pixels of map ``which``) lie within
@@ -689,30 +689,30 @@ WALL_ICP_REACH = 32
 _NO_WALL = -128
 #: OpenCV's 5 x 5 chamfer mask for ``DIST_L2``: steps (1, 0), (1, 1) and (2, 1).
 _CHAMFER_STEPS = ((1, 0, 1.0), (1, 1, 1.4), (2, 1, 2.1969))
-_CHAMFER: list = []
 
 
+@functools.cache
 def _chamfer_norms() -> np.ndarray:
     """``[|dy|, |dx|]`` -> the distance ``cv2.distanceTransform`` (``DIST_L2``, mask 5)
     gives between two cells that far apart, for offsets up to :data:`WALL_ICP_REACH`: the
-    cheapest path of the mask's steps (float32 sums, as OpenCV's)."""
-    if not _CHAMFER:
-        n = WALL_ICP_REACH + 1
-        cost = np.full((n + 2, n + 2), np.inf, np.float32)
-        cost[0, 0] = 0.0
-        steps = [(dy, dx, np.float32(c)) for a, b, c in _CHAMFER_STEPS for dy, dx in {(a, b), (b, a)}]
-        # Every step moves away from the origin (dx + dy grows), so one pass in order of
-        # dx + dy finds each cheapest path.
-        for total in range(1, 2 * n):
-            for y in range(max(0, total - n + 1), min(n, total + 1)):
-                x = total - y
-                best = np.float32(np.inf)
-                for dy, dx, c in steps:
-                    if y - dy >= 0 and x - dx >= 0:
-                        best = min(best, np.float32(cost[y - dy, x - dx] + c))
-                cost[y, x] = best
-        _CHAMFER.append(cost[:n, :n].copy())
-    return _CHAMFER[0]
+    cheapest path of the mask's steps (float32 sums, as OpenCV's). Made once, when first
+    needed."""
+    n = WALL_ICP_REACH + 1
+    cost = np.full((n, n), np.inf, np.float32)
+    cost[0, 0] = 0.0
+    steps = [(dy, dx, np.float32(c)) for a, b, c in _CHAMFER_STEPS for dy, dx in {(a, b), (b, a)}]
+    # Every step moves away from the origin (dx + dy grows), so one pass in order of
+    # dx + dy finds each cheapest path.
+    for total in range(1, 2 * n - 1):
+        for y in range(max(0, total - n + 1), min(n, total + 1)):
+            x = total - y
+            best = np.float32(np.inf)
+            for dy, dx, c in steps:
+                if y - dy >= 0 and x - dx >= 0:
+                    best = min(best, np.float32(cost[y - dy, x - dx] + c))
+            cost[y, x] = best
+    cost.flags.writeable = False  # shared by every caller
+    return cost
 
 
 def _nearest_walls(walls: np.ndarray, reach: int, rows: int | None = None) -> np.ndarray:
