@@ -215,6 +215,109 @@ def test_default_data_dir_is_next_to_the_project():
     assert datasets.default_data_dir() == root.parent / "shared" / "data"
 
 
+# -------------------------------------------------- a Halmstad-like folder
+def _write_halmstad(root, maps: dict, pairs: dict) -> None:
+    """A folder laid out as the shared data's ``halmstad/``: ``maps`` {environment: map
+    names}, ``pairs`` {environment: [(a, b, kind)]}; tiny gray PNG maps."""
+    import json
+
+    rng = np.random.default_rng(0)
+    for env, names in maps.items():
+        (root / env).mkdir(parents=True)
+        for name in names:
+            img = np.full((30, 40), 127, np.uint8)
+            img[5:25, 5:35] = 255
+            img[5, 5:35] = 0
+            img[rng.integers(6, 24), 5:35] = 0
+            cv2.imwrite(str(root / env / f"{name}.png"), img)
+    for env, plist in pairs.items():
+        doc = {"pairs": [
+            {"a": a, "b": b, "kind": kind, "points_a": [[1.0, 2.0], [3.0, 4.0]], "points_b": [[1.0, 2.0], [3.0, 4.0]],
+             "fit_b_to_a": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], "fit_median_residual_px": 3.0}
+            for a, b, kind in plist
+        ]}
+        (root / f"{env}_pairs.json").write_text(json.dumps(doc))
+
+
+def test_halmstad_reads_every_environment_of_the_folder(tmp_path):
+    """Another building dropped into the folder in the same layout is benchmarked: its
+    pairs, and its maps against every other building's as negatives."""
+    root = tmp_path / "halmstad"
+    maps = {"AB1": ["AB1_01", "AB1_02", "AB1_03"], "F5": ["F5_1", "F5_2", "F5_10"], "HOME": ["HOME_01", "HOME_02"]}
+    pairs = {
+        "AB1": [("AB1_01", "AB1_02", "sensor"), ("AB1_01", "AB1_layout", "layout"), ("AB1_02", "AB1_03", "sensor")],
+        "F5": [("F5_2", "F5_10", "sensor"), ("F5_1", "F5_10", "sensor")],
+        "HOME": [("HOME_01", "HOME_02", "sensor")],
+    }
+    _write_halmstad(root, maps, pairs)
+    (root / "NOMAPS_pairs.json").write_text('{"pairs": []}')  # annotations without a maps' folder
+    assert datasets.halmstad_environments(tmp_path) == ["AB1", "F5", "HOME"]
+
+    ds = datasets.halmstad(tmp_path)
+    ids = [ds[k].id for k in range(len(ds))]
+    sensor = [i for i in ids if i.startswith("halmstad/")]
+    cross = [i for i in ids if i.startswith("halmstad-cross/")]
+    assert sensor == ["halmstad/AB1_01-AB1_02", "halmstad/AB1_02-AB1_03", "halmstad/F5_2-F5_10", "halmstad/F5_1-F5_10",
+                      "halmstad/HOME_01-HOME_02"]
+    assert ids[: len(sensor)] == sensor  # sensor pairs first
+    # The layout pair's blueprint is not in the folder: left out, and said so.
+    assert not any(i.startswith("halmstad-layout/") for i in ids)
+    assert any("AB1_layout.png" in note for note in ds.notes)
+    # Every map of each building against every map of each other one, once; the first
+    # building's (by name) map is map a when its number is odd.
+    assert len(cross) == 3 * 3 + 3 * 2 + 3 * 2
+    assert cross[:6] == ["halmstad-cross/AB1_01-F5_1", "halmstad-cross/AB1_01-F5_2", "halmstad-cross/AB1_01-F5_10",
+                         "halmstad-cross/F5_1-AB1_02", "halmstad-cross/F5_2-AB1_02", "halmstad-cross/F5_10-AB1_02"]
+    assert "halmstad-cross/F5_1-HOME_01" in cross and "halmstad-cross/HOME_02-F5_10" in cross  # F5's 10 is even
+    c = ds[ids.index("halmstad-cross/F5_2-AB1_02")]
+    assert not c.positive and c.truth is None and c.meta["environment"] == "AB1+F5" and c.meta["map_b"] == "AB1_02"
+    assert c.meta["source"] == "halmstad:AB1+F5" and c.a.shape == (30, 40)
+    f5 = ds[ids.index("halmstad/F5_2-F5_10")]
+    assert f5.positive and f5.meta["environment"] == "F5" and f5.meta["threshold_px"] == 20.0
+
+    # Chosen environments only; the first n of each kind and environment.
+    two = datasets.halmstad(tmp_path, environments=("HOME", "F5"), kinds=("sensor", "cross"), limit=1)
+    assert [two[k].id for k in range(len(two))] == ["halmstad/HOME_01-HOME_02", "halmstad/F5_2-F5_10", "halmstad-cross/F5_1-HOME_01"]
+    with pytest.raises(GridMergeError, match="KPT4A_pairs.json"):
+        datasets.halmstad(tmp_path, environments=("KPT4A",))
+    empty = tmp_path / "empty"
+    (empty / "halmstad").mkdir(parents=True)
+    assert datasets.halmstad_environments(empty) == []
+    with pytest.raises(GridMergeError, match="no Halmstad annotations"):
+        datasets.halmstad(empty)
+
+
+def test_halmstad_results_by_environment(tmp_path):
+    """With more than one building, each building's pairs are summed up on their own."""
+    from gridmerge.bench.metrics import evaluate, summarize
+    from gridmerge.bench.report import results_markdown
+    from gridmerge.bench.runner import BenchRun
+
+    root = tmp_path / "halmstad"
+    _write_halmstad(root, {"E9": ["E9_01", "E9_02"], "H2": ["H2_01", "H2_02"]},
+                    {"E9": [("E9_01", "E9_02", "sensor")], "H2": [("H2_01", "H2_02", "sensor")]})
+    ds = datasets.halmstad(tmp_path, kinds=("sensor",))
+    from gridmerge.align import AlignResult
+    from gridmerge.transforms import SimilarityTransform
+
+    def result(success):
+        t = SimilarityTransform(np.eye(3))
+        return AlignResult(success=success, transform=t if success else None, candidate=t, metric_transform=None, confidence=0.9,
+                           acceptance_index=0.9, inliers=10, matches=20, keypoints=(5, 5), method="m", message="", elapsed_s=0.1)
+
+    recs = [evaluate(ds[0], result(True)), evaluate(ds[1], result(False))]
+    rows = summarize(recs)
+    by_env = {r["tier"]: r for r in rows if r.get("by") == "environment"}
+    assert set(by_env) == {"E9", "H2"}
+    assert by_env["E9"]["success"] == 1 and by_env["H2"]["declined"] == 1
+    assert [r for r in rows if r["tier"] == "all"][0]["success_rate"] == 0.5
+    # One environment: no breakdown.
+    assert not [r for r in summarize(recs[:1]) if r.get("by")]
+    run = BenchRun(None, {"seed": 0, "methods": ["m"], "datasets": []}, [r.to_dict() for r in recs], {"rows": rows})
+    md = results_markdown(run)
+    assert "## halmstad by environment" in md and "| E9 | `m` |" in md
+
+
 # ------------------------------------------------------------- shared data
 @pytest.mark.shared
 def test_halmstad_pairs(shared_data):

@@ -39,3 +39,20 @@ def test_the_apartment_maps_merge_as_one_fleet():
         pytest.skip("needs ../shared/data")
     r = halmstad_fleet("HIH")
     assert r["placed"] == r["maps"] == 4 and r["wrong"] == 0 and r["right"] == r["pairs"] == 6
+
+
+def test_real_fleets_are_every_environment_of_the_folder_smallest_first(tmp_path):
+    import cv2
+    import numpy as np
+
+    from gridmerge.bench.fleet import _halmstad_fleets
+
+    root = tmp_path / "halmstad"
+    for env, names in {"BIG": ["BIG_1", "BIG_2", "BIG_10"], "AA": ["AA_01", "AA_02", "AA_03"], "SMALL": ["SMALL_01", "SMALL_02"]}.items():
+        (root / env).mkdir(parents=True)
+        (root / f"{env}_pairs.json").write_text('{"pairs": []}')
+        for name in names:
+            cv2.imwrite(str(root / env / f"{name}.png"), np.full((8, 8), 255, np.uint8))
+    assert _halmstad_fleets(tmp_path) == ["SMALL", "AA", "BIG"]
+    (tmp_path / "other").mkdir()
+    assert _halmstad_fleets(tmp_path / "other") == []  # a data folder without Halmstad maps

@@ -183,3 +183,44 @@ def test_cli_options_without_parents():
     assert (args.bench_quick, args.bench_seed, args.bench_n, args.bench_datasets) == (True, 4, 3, ["simulated", "halmstad"])
     args = p.parse_args(["bench"])
     assert args.bench_datasets is None and args.bench_seed == 0 and args.bench_plots
+
+
+def test_all_skips_the_halmstad_pairs_when_the_folder_has_none(tmp_path):
+    """A data folder without annotated Halmstad maps runs the other data sets, and says so."""
+    from gridmerge.bench.runner import _resolve_datasets
+
+    sets, notes = _resolve_datasets("all", seed=0, n=1, quick=True, data_dir=tmp_path)
+    assert [ds.name for ds in sets] == ["simulated", "paper"]
+    assert notes == [f"halmstad skipped: no annotated maps in {tmp_path / 'halmstad'}"]
+
+
+def test_dataset_names_choose_halmstad_environments(tmp_path, capsys):
+    """``--dataset halmstad:ENV`` runs those environments; a bad name is one line."""
+    import cv2
+    import numpy as np
+
+    root = tmp_path / "halmstad"
+    for env in ("AA", "BB"):
+        (root / env).mkdir(parents=True)
+        img = np.full((30, 40), 127, np.uint8)
+        img[5:25, 5:35] = 255
+        img[5, 5:35] = 0
+        for k in (1, 2):
+            cv2.imwrite(str(root / env / f"{env}_{k:02d}.png"), img)
+        pair = {"a": f"{env}_01", "b": f"{env}_02", "kind": "sensor", "points_a": [[1.0, 1.0]], "points_b": [[1.0, 1.0]],
+                "fit_b_to_a": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], "fit_median_residual_px": 1.0}
+        (root / f"{env}_pairs.json").write_text(json.dumps({"pairs": [pair]}))
+    one = datasets.load("halmstad:BB", data_dir=tmp_path)
+    assert [one[k].id for k in range(len(one))] == ["halmstad/BB_01-BB_02"]
+    both = datasets.load("halmstad:AA+BB", data_dir=tmp_path)
+    assert len(both) == 2 + 4  # two sensor pairs, 2 x 2 cross pairs
+    assert cli_bench._dataset_name("halmstad:AA+BB") == "halmstad:AA+BB"
+    for bad in ("halmstad:", "halmstad:AA+", "simulation"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            cli_bench._dataset_name(bad)
+    from gridmerge.cli.main import main
+
+    code = main(["bench", "--dataset", "halmstad:CC", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--methods", "orb"])
+    err = capsys.readouterr().err
+    assert code not in (0, 1) and "CC_pairs.json" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "run" / "cases.jsonl").exists()

@@ -59,6 +59,7 @@ __all__ = [
     "resolve_data_dir",
     "simulated",
     "halmstad",
+    "halmstad_environments",
     "paper",
     "load",
     "measure_overlap",
@@ -77,6 +78,9 @@ PAPER_TABLE1 = {
     "paper": {"rotation_deg": 29.91, "x": -85.79, "y": -36.11, "scale": 0.9503},
 }
 
+#: The Halmstad sensor maps :func:`simulated` draws from (a fixed list, so that a seed
+#: gives the same cases whatever else the data folder holds; :func:`halmstad` reads every
+#: environment there).
 _HALMSTAD_ENVIRONMENTS = {"E5": 14, "HIH": 4}
 
 
@@ -806,29 +810,56 @@ def _world_cached_pair(name: str, data_key: Optional[str]) -> _World:
 
 
 # ------------------------------------------------------------------- halmstad
+def halmstad_environments(data_dir=None) -> list:
+    """Names of the Halmstad environments in the shared data folder, sorted: every
+    ``halmstad/ENV_pairs.json`` that has its maps' folder ``halmstad/ENV/`` (``[]``
+    without the folder). Environments added to the folder in the same layout (another
+    building of the Halmstad data set, or a set of annotated maps of one's own) are
+    benchmarked with no change to the code."""
+    d = resolve_data_dir(data_dir)
+    if d is None or not (d / "halmstad").is_dir():
+        return []
+    root = d / "halmstad"
+    return sorted(f.name[: -len("_pairs.json")] for f in root.glob("*_pairs.json") if (root / f.name[: -len("_pairs.json")]).is_dir())
+
+
+def _map_number(stem: str) -> int:
+    """The number of a sensor map (``E5_07`` -> 7, ``F5_2`` -> 2)."""
+    return int(stem.rsplit("_", 1)[1])
+
+
+def _sensor_stems(root: Path, env: str) -> list:
+    """The sensor maps of an environment (``ENV_<number>.png``), by number."""
+    stems = [p.stem for p in (root / env).glob(f"{env}_[0-9]*.png") if p.stem.rsplit("_", 1)[1].isdigit()]
+    return sorted(stems, key=_map_number)
+
+
 def halmstad(
     data_dir=None,
     *,
     kinds: Sequence[str] = ("sensor", "layout", "cross"),
-    environments: Sequence[str] = ("E5", "HIH"),
+    environments: Optional[Sequence[str]] = None,
     limit: Optional[int] = None,
 ) -> Dataset:
     """The annotated real pairs of the Halmstad data set, and real negative pairs.
 
     Sensor pairs (two Tango maps) are data set ``"halmstad"``; layout pairs (a sensor map
     against the RGBA blueprint) ``"halmstad-layout"``, reported separately. Cross pairs
-    (``"halmstad-cross"``, with both environments) are negatives: a sensor map of E5 (a
-    university building) against one of HIH (an apartment), every combination, the
-    even-numbered E5 maps as map b. Maps of two different buildings must not be merged;
-    they are real maps, with the noise, bending and room shapes that the simulated
-    negatives lack.
+    (``"halmstad-cross"``) are negatives: every sensor map of one environment against
+    every sensor map of another (E5, a university building, against HIH, an apartment,
+    with the shared data as it is), for every two environments; the map of the first
+    environment (by name) is map a when its number is odd, map b when it is even. Maps of
+    two different buildings must not be merged; they are real maps, with the noise,
+    bending and room shapes that the simulated negatives lack.
 
     Parameters
     ----------
     data_dir : path, optional
         The shared data folder (default: :func:`default_data_dir`).
     kinds : sequence of {"sensor", "layout", "cross"}
-    environments : sequence of {"E5", "HIH"}
+    environments : sequence of str, optional
+        Environments to read (default: every one in the folder,
+        :func:`halmstad_environments`; ``E5`` and ``HIH`` in the shared data).
     limit : int, optional
         At most this many pairs of each kind and environment (the first ones); at most
         this many cross pairs.
@@ -841,19 +872,27 @@ def halmstad(
         ``points_a``, ``points_b``, ``fit_median_residual_px`` and the protocol's
         ``threshold_px = max(20, 2 * fit_median_residual_px)``, ``protocol = "halmstad"``,
         ``resolutions_known`` (``False`` for layout pairs: the benchmark aligns them
-        with ``max_scale_disagreement=None``). Cross cases ``"halmstad-cross/E5_01-HIH_01"`` ...: ``truth`` ``None``, tier
-        ``"negative"``.
+        with ``max_scale_disagreement=None``). Cross cases ``"halmstad-cross/E5_01-HIH_01"``
+        ...: ``truth`` ``None``, tier ``"negative"``, ``environment`` ``"E5+HIH"``.
+        An annotated pair whose map file is missing is left out, and said so in the
+        data set's ``notes``.
 
     Raises
     ------
     GridMergeError
-        When the data folder or the annotations are missing.
+        When the data folder, an asked environment's annotations, or every environment
+        are missing.
     """
     d = resolve_data_dir(data_dir)
     if d is None:
         raise GridMergeError(f"the Halmstad data needs the shared data folder ({default_data_dir()} not found)")
     root = d / "halmstad"
+    if environments is None:
+        environments = halmstad_environments(d)
+        if not environments:
+            raise GridMergeError(f"no Halmstad annotations (ENV_pairs.json with a folder ENV/) in {root}")
     entries = []
+    missing: dict = {}
     for env in environments:
         f = root / f"{env}_pairs.json"
         if not f.is_file():
@@ -864,27 +903,39 @@ def halmstad(
             kind = p.get("kind", "sensor")
             if kind not in kinds:
                 continue
+            absent = [m for m in (p["a"], p["b"]) if not (root / env / f"{m}.png").is_file()]
+            if absent:
+                missing.setdefault(env, set()).update(absent)
+                continue
             counts[kind] = counts.get(kind, 0) + 1
             if limit is not None and counts[kind] > limit:
                 continue
             entries.append((env, p))
+    notes = [f"halmstad {env}: pairs with {', '.join(sorted(m))}.png left out (not in {root / env})" for env, m in missing.items()]
     # Sensor pairs first, then layout pairs (keeps the file order within each).
     entries.sort(key=lambda e: 0 if e[1].get("kind", "sensor") == "sensor" else 1)
-    if "cross" in kinds and {"E5", "HIH"} <= set(environments):
-        e5 = sorted(p.stem for p in (root / "E5").glob("E5_[0-9]*.png"))
-        hih = sorted(p.stem for p in (root / "HIH").glob("HIH_[0-9]*.png"))
-        cross = [(m, h) if int(m[3:]) % 2 else (h, m) for m in e5 for h in hih]
-        entries += [("cross", {"kind": "cross", "a": a, "b": b}) for a, b in cross[:limit]]
+    if "cross" in kinds:
+        envs = sorted(set(environments))
+        cross = []
+        for i, first in enumerate(envs):
+            for other in envs[i + 1:]:
+                for m in _sensor_stems(root, first):
+                    for h in _sensor_stems(root, other):
+                        pair = ((first, m), (other, h)) if _map_number(m) % 2 else ((other, h), (first, m))
+                        cross.append(("cross", {"kind": "cross", "a": pair[0], "b": pair[1]}))
+        entries += cross[:limit]
     root_s = str(root)
 
     def build(k: int) -> Case:
         env, p = entries[k]
         if env == "cross":
-            a = _halmstad_map(root_s, p["a"].split("_")[0], p["a"])
-            b = _halmstad_map(root_s, p["b"].split("_")[0], p["b"])
-            meta = {"tier": "negative", "environment": "E5+HIH", "kind": "cross", "map_a": p["a"], "map_b": p["b"],
-                    "negative_kind": "different-buildings", "source": "halmstad:E5+HIH"}
-            return Case(f"halmstad-cross/{p['a']}-{p['b']}", "halmstad-cross", a, b, None, False, meta)
+            (env_a, name_a), (env_b, name_b) = p["a"], p["b"]
+            a = _halmstad_map(root_s, env_a, name_a)
+            b = _halmstad_map(root_s, env_b, name_b)
+            both = "+".join(sorted((env_a, env_b)))
+            meta = {"tier": "negative", "environment": both, "kind": "cross", "map_a": name_a, "map_b": name_b,
+                    "negative_kind": "different-buildings", "source": f"halmstad:{both}"}
+            return Case(f"halmstad-cross/{name_a}-{name_b}", "halmstad-cross", a, b, None, False, meta)
         kind = p.get("kind", "sensor")
         a = _halmstad_map(root_s, env, p["a"])
         b = _halmstad_map(root_s, env, p["b"])
@@ -912,7 +963,7 @@ def halmstad(
         dataset = "halmstad" if kind == "sensor" else "halmstad-layout"
         return Case(f"{dataset}/{p['a']}-{p['b']}", dataset, a, b, fit, True, meta)
 
-    return Dataset("halmstad", len(entries), build, [])
+    return Dataset("halmstad", len(entries), build, notes)
 
 
 def _halmstad_map(root: str, env: str, stem: str) -> OccupancyGrid:
@@ -958,9 +1009,9 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
 
     ``simulated``: ``n`` cases (default 60; 6 with ``quick``); ``halmstad``: every
     annotated pair and every cross-building negative (with ``quick``: the first 2 sensor
-    pairs and the first layout pair of E5 and of HIH, and one cross pair), or the first
-    ``n`` of each kind and environment; ``paper``: seeds 0-4
-    (seed 0 with ``quick``).
+    pairs and the first layout pair of each environment, and one cross pair), or the first
+    ``n`` of each kind and environment; ``halmstad:ENV`` or ``halmstad:ENV+ENV...``: the
+    same with these environments only; ``paper``: seeds 0-4 (seed 0 with ``quick``).
 
     Raises
     ------
@@ -969,13 +1020,14 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     """
     if name == "simulated":
         return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir)
-    if name == "halmstad":
+    if name == "halmstad" or name.startswith("halmstad:"):
+        envs = name.split(":", 1)[1].split("+") if ":" in name else None
         if quick:
-            sensor = halmstad(data_dir, kinds=("sensor",), limit=2)
-            layout = halmstad(data_dir, kinds=("layout",), limit=1)
-            cross = halmstad(data_dir, kinds=("cross",), limit=1)
+            sensor = halmstad(data_dir, kinds=("sensor",), limit=2, environments=envs)
+            layout = halmstad(data_dir, kinds=("layout",), limit=1, environments=envs)
+            cross = halmstad(data_dir, kinds=("cross",), limit=1, environments=envs)
             return _concat("halmstad", [sensor, layout, cross])
-        return halmstad(data_dir, limit=n)
+        return halmstad(data_dir, limit=n, environments=envs)
     if name == "paper":
         return paper((0,) if quick else tuple(range(5)))
     raise GridMergeError(f"unknown data set {name!r} (use {', '.join(DATASETS)})")

@@ -273,7 +273,7 @@ def benchmark(
     source: Optional[str | OccupancyGrid] = None,
     shape: Sequence[int] = (800, 1100),
     progress=None,
-    halmstad: Sequence[str] = ("HIH", "E5"),
+    halmstad: Optional[Sequence[str]] = None,
     data_dir=None,
 ) -> FleetBenchmark:
     """Time fleet merges of each size with each number of workers, and one update.
@@ -282,9 +282,11 @@ def benchmark(
     ----------
     robots : sequence of int
         Fleet sizes; each fleet is :func:`simulate_fleet` ``(n, seed, source=source)``.
-    halmstad : sequence of str
+    halmstad : sequence of str, optional
         Halmstad environments merged as real fleets (:func:`halmstad_fleet`), when the
-        shared data is there.
+        shared data is there. Default: every one in it
+        (:func:`gridmerge.bench.datasets.halmstad_environments`; HIH and E5), the
+        smallest fleet first; ``()`` for none.
     workers : sequence of int
         Process-pool sizes (1: serial).
     source, shape
@@ -365,6 +367,8 @@ def benchmark(
     real = []
     from .datasets import resolve_data_dir
 
+    if halmstad is None:
+        halmstad = _halmstad_fleets(data_dir)
     if halmstad and resolve_data_dir(data_dir) is not None:
         for env in halmstad:
             if progress is not None:
@@ -373,6 +377,16 @@ def benchmark(
     config = {"robots": list(robots), "workers": list(workers), "seed": seed, "source": fleets[robots[0]].meta["source"],
               "shape": list(shape), "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version()}
     return FleetBenchmark(rows, update, config, real)
+
+
+def _halmstad_fleets(data_dir) -> list:
+    """Every Halmstad environment of the data folder, the one with fewest sensor maps first."""
+    from .datasets import _sensor_stems, halmstad_environments, resolve_data_dir
+
+    d = resolve_data_dir(data_dir)
+    if d is None:
+        return []
+    return sorted(halmstad_environments(d), key=lambda env: (len(_sensor_stems(d / "halmstad", env)), env))
 
 
 def halmstad_fleet(env: str = "E5", *, data_dir=None, seed: int = 0, executor=None, progress=None) -> dict:
@@ -395,7 +409,7 @@ def halmstad_fleet(env: str = "E5", *, data_dir=None, seed: int = 0, executor=No
 
     from ..io import load_map
     from ..merge import merge
-    from .datasets import resolve_data_dir
+    from .datasets import _sensor_stems, resolve_data_dir
     from .metrics import halmstad_point_error
 
     root = resolve_data_dir(data_dir)
@@ -403,7 +417,7 @@ def halmstad_fleet(env: str = "E5", *, data_dir=None, seed: int = 0, executor=No
         raise FileNotFoundError("the Halmstad maps need ../shared/data (see --data)")
     folder = Path(root) / "halmstad"
     spec = json.loads((folder / f"{env}_pairs.json").read_text())
-    stems = sorted(p.stem for p in (folder / env).glob(f"{env}_[0-9]*.png"))
+    stems = _sensor_stems(folder, env)
     maps = [load_map(folder / env / f"{s}.png").replace(name=s) for s in stems]
     t0 = time.perf_counter()
     r = merge(maps, rng=seed, executor=executor, progress=progress)

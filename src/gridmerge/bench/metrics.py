@@ -360,9 +360,20 @@ def _group(records: Sequence[dict]) -> dict:
     }
 
 
+def _environment(record: dict) -> Optional[str]:
+    """The Halmstad environment of a record of a Halmstad data set (``"E5"``, or
+    ``"E5+HIH"`` for a cross pair), ``None`` for other data sets."""
+    source = record.get("source") or ""
+    if not record["dataset"].startswith("halmstad") or not source.startswith("halmstad:"):
+        return None
+    return source.split(":", 1)[1]
+
+
 def summarize(records: Iterable) -> list:
-    """Summary rows per method and dataset (``tier = "all"``) and per method, dataset and
-    tier (when a dataset has more than one tier).
+    """Summary rows per method and dataset (``tier = "all"``), per method, dataset and
+    tier (when a dataset has more than one tier), and, for the Halmstad data sets, per
+    method, dataset and environment (``tier`` the environment's name, ``by =
+    "environment"``; when a data set has more than one).
 
     Each row: ``method``, ``dataset``, ``tier`` and the counts and rates of
     :func:`_group`: ``success_rate`` (over positive pairs), ``precise_rate``,
@@ -385,4 +396,9 @@ def summarize(records: Iterable) -> list:
                     sub = [r for r in sel if r["tier"] == t]
                     if sub:
                         rows.append({"method": m, "dataset": ds, "tier": t, **_group(sub)})
+            envs = list(dict.fromkeys(e for e in map(_environment, sel) if e is not None))
+            if len(envs) > 1:
+                for e in envs:
+                    sub = [r for r in sel if _environment(r) == e]
+                    rows.append({"method": m, "dataset": ds, "tier": e, "by": "environment", **_group(sub)})
     return rows

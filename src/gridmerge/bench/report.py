@@ -101,12 +101,12 @@ def results_markdown(bench) -> str:
             _table(["data set", "method"] + _HEADER, [_summary_row(r, [r["dataset"], f"`{r['method']}`"]) for r in main])
         )
     tiered = [r for r in rows if r["tier"] != "all"]
-    for ds in dict.fromkeys(r["dataset"] for r in tiered):
-        sub = [r for r in tiered if r["dataset"] == ds]
+    for ds, by in dict.fromkeys((r["dataset"], r.get("by", "tier")) for r in tiered):
+        sub = [r for r in tiered if r["dataset"] == ds and r.get("by", "tier") == by]
         order = {t: i for i, t in enumerate(list(TIERS) + ["negative"])}
         sub.sort(key=lambda r: (order.get(r["tier"], 99), r["tier"]))
-        out.append(f"\n## {ds} by tier\n\n")
-        out.append(_table(["tier", "method"] + _HEADER, [_summary_row(r, [r["tier"], f"`{r['method']}`"]) for r in sub]))
+        out.append(f"\n## {ds} by {by}\n\n")
+        out.append(_table([by, "method"] + _HEADER, [_summary_row(r, [r["tier"], f"`{r['method']}`"]) for r in sub]))
         if ds == "simulated":
             out.append(
                 "\nTiers: "

@@ -139,6 +139,9 @@ def _resolve_datasets(datasets, *, seed, n, quick, data_dir) -> tuple[list, list
             if name == "halmstad" and item == "all" and _datasets.resolve_data_dir(data_dir) is None:
                 notes.append(f"halmstad skipped: shared data not found at {_datasets.default_data_dir()}")
                 continue
+            if name == "halmstad" and item == "all" and not _datasets.halmstad_environments(data_dir):
+                notes.append(f"halmstad skipped: no annotated maps in {_datasets.resolve_data_dir(data_dir) / 'halmstad'}")
+                continue
             out.append(_datasets.load(name, seed=seed, n=n if name == "simulated" else None, quick=quick, data_dir=data_dir))
     return out, notes
 
@@ -272,7 +275,8 @@ def run(
         skipped with a warning in the results.
     datasets : str, Dataset, or a sequence of them
         ``"simulated"``, ``"halmstad"``, ``"paper"``, ``"all"`` (the three; Halmstad is
-        skipped with a note when the shared data is absent), or
+        skipped with a note when the shared data is absent), ``"halmstad:E5"`` or
+        ``"halmstad:E5+HIH"`` (some environments, :func:`~gridmerge.bench.datasets.load`), or
         :class:`~gridmerge.bench.datasets.Dataset` objects.
     seed : int
         Seed of the simulated cases and of every alignment.

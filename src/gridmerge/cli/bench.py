@@ -27,6 +27,14 @@ EXIT_BAD_INPUT = 2
 _DATASET_CHOICES = ("simulated", "halmstad", "paper", "all")
 
 
+def _dataset_name(text: str) -> str:
+    """``--dataset``'s value: one of :data:`_DATASET_CHOICES`, or ``halmstad:ENV[+ENV...]``."""
+    envs = text.split(":", 1)[1].split("+") if text.startswith("halmstad:") else []
+    if text in _DATASET_CHOICES or (envs and all(envs)):
+        return text
+    raise argparse.ArgumentTypeError(f"unknown data set {text!r} (use {', '.join(_DATASET_CHOICES)} or halmstad:ENV)")
+
+
 class _BenchUsageError(GridMergeError):
     pass
 
@@ -59,9 +67,10 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
         "bench_datasets",
         None,
         action="append",
-        choices=_DATASET_CHOICES,
+        type=_dataset_name,
         metavar="NAME",
-        help="data set to run: simulated, halmstad, paper or all (default: all); repeatable",
+        help="data set to run: simulated, halmstad, paper or all (default: all), or halmstad:ENV[+ENV...] for some "
+        "of the Halmstad folder's environments (halmstad:E5, halmstad:E5+HIH); repeatable",
     )
     add(
         "--methods",
@@ -133,7 +142,7 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
                     help="building: a benchmark source map name (e.g. willow) or none for a procedural one (default)")
     pf.add_argument("--out", dest="fleet_out", default=None, metavar="DIR", help="results folder (default: bench-fleet-YYYYmmdd-HHMMSS)")
     pf.add_argument("--data", dest="fleet_data", default=None, metavar="DIR", help="shared data folder (for --source and the Halmstad fleets)")
-    pf.add_argument("--no-halmstad", dest="fleet_halmstad", action="store_false", help="skip the real Halmstad fleets (HIH, E5)")
+    pf.add_argument("--no-halmstad", dest="fleet_halmstad", action="store_false", help="skip the real Halmstad fleets (every environment of the data folder: HIH, E5)")
     if _taken(pf, "--seed") is None:
         pf.add_argument("--seed", dest="fleet_seed", type=int, default=0, metavar="S", help="seed of the fleets and merges (default 0)")
     pf.add_argument("--progress", dest="fleet_progress", action="store_true", help="show a progress bar even when stderr is not a terminal")
@@ -265,7 +274,7 @@ def _cmd_fleet(args) -> int:
     if seed is None:  # a parent parser's --seed
         seed = getattr(args, "seed", 0) or 0
     result = fleet.benchmark(robots, workers, seed=seed, source=source, progress=bar,
-                             halmstad=("HIH", "E5") if args.fleet_halmstad else (), data_dir=args.fleet_data)
+                             halmstad=None if args.fleet_halmstad else (), data_dir=args.fleet_data)
     result.save(out)
     sys.stdout.write(result.to_markdown())
     print(f"results: {out}")
