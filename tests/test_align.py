@@ -504,20 +504,23 @@ def test_polishing_on_the_walls_merges_real_maps_that_bend(shared_data, monkeypa
     # Halmstad E5_06-E5_09: Tango maps that bend against each other. Refined on the
     # smoothed cells, the right pose's walls agree on 40 % and a clearly different pose
     # scores nearly as well (confidence 0.31); polished on the walls, it is merged within
-    # the data set's protocol.
+    # the data set's protocol. (Searched from E5_09's side too, the same merge is found
+    # even unpolished: the polish is judged from E5_06's side alone.)
     pair, a, b = _e5_pair(shared_data, "E5_06", "E5_09")
-    r = align(a, b, rng=0)
+    r = align(a, b, rng=0, one_sided_confidence=None)
     assert r.success, r.message
     assert _within_protocol(r.transform, pair)
+    assert _within_protocol(align(a, b, rng=0).transform, pair)
     monkeypatch.setattr(importlib.import_module("gridmerge.align")._Judge, "polished", lambda self, t, score: (score(t), t))
-    assert not align(a, b, rng=0).success
+    assert not align(a, b, rng=0, one_sided_confidence=None).success
 
 
 def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
     # Robots 6 and 7 of the simulated fleet of 8 (seed 0), a procedural building whose
     # rooms repeat: ICP slides a chance pose 15 px, to walls that agree on 47 % instead
     # of 37 %, enough for confidence 0.59 and a merge 1100 px off. Polishing stops at a
-    # refinement's reach.
+    # refinement's reach. (The search from robot 7's side finds another pose, 157 px
+    # away: the slid pose would be one-sided, and declined as such too.)
     from gridmerge.bench.fleet import simulate_fleet
 
     align_module = importlib.import_module("gridmerge.align")
@@ -525,5 +528,132 @@ def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
     a, b = fleet.maps[5], fleet.maps[6]
     assert not align(a, b, rng=0).success
     monkeypatch.setattr(align_module, "_POLISH_REACH", 30.0)
-    r = align(a, b, rng=0)
+    r = align(a, b, rng=0, one_sided_confidence=None)
     assert r.success and corner_error(r.transform, fleet.relative(5, 6), b.shape) > 100
+    r = align(a, b, rng=0)
+    assert not r.success and "found from a's side only" in r.message
+
+
+def _one_side(transform, confidence, source="walls"):
+    from gridmerge.align import Estimate
+
+    empty = np.zeros((0, 2))
+    return Estimate(transform, np.zeros(0, bool), empty, empty, details={"source": source, "runner_up_ratio": 0.5},
+                    confidence=confidence)
+
+
+@pytest.mark.parametrize("other_conf, other_far, expect", [
+    (0.9, False, "theirs"),  # the same merge, surer from b's side: its pose and confidence
+    (0.3, False, "ours"),  # the same merge, less sure from b's side
+    (0.9, True, "one-sided"),  # another pose from b's side
+    (None, None, "one-sided"),  # nothing from b's side
+])
+def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeypatch, other_conf, other_far, expect):
+    """Below ``one_sided_confidence`` the search runs again with b as the reference. The
+    same merge from both sides (within 40 px on the shared part) takes the more confident
+    side's pose; another pose, or none, leaves the pose one-sided: declined, saying why."""
+    align_module = importlib.import_module("gridmerge.align")
+    a, b, truth = samples.table1_pair(0)
+    ours = SimilarityTransform(truth)
+    shift = 60.0 if other_far else 5.0
+    theirs = SimilarityTransform(translation=(shift, 0.0)) @ ours
+    calls = []
+
+    def search(judge, fa, fb):
+        calls.append(judge.a is a)
+        if judge.a is a:
+            return _one_side(ours, 0.6)
+        if other_conf is None:
+            return _one_side(None, 0.0)
+        return _one_side(SimilarityTransform(np.linalg.inv(theirs.params)), other_conf, "keypoints")
+
+    monkeypatch.setattr(align_module, "_hybrid_search", search)
+    opts = align_module.AlignOptions()
+    fa = fb = None
+    est = align_module._both_sides(a, b, fa, fb, opts, np.random.default_rng(0), None)
+    assert calls == [True, False]
+    if expect == "theirs":
+        assert est.confidence == 0.9 and np.allclose(est.transform.params, theirs.params)
+        assert est.details["source"] == "keypoints" and est.details["other_side"]["taken"] and not est.one_sided
+        assert est.verification is not None
+    elif expect == "ours":
+        assert est.confidence == 0.6 and est.transform is ours and not est.one_sided
+        assert est.details["other_side"]["same_pose"] and est.details["other_side"]["moved_px"] == pytest.approx(5.0, abs=0.5)
+    else:
+        assert est.transform is ours and est.confidence == 0.6
+        assert est.one_sided.startswith("declined: found from a's side only") and "needs confidence 0.8" in est.one_sided
+        assert ("no pose" in est.one_sided) == (other_conf is None)
+    # Sure enough from one side, or asked to search from a's side only: one search.
+    calls.clear()
+    assert align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=0.55), np.random.default_rng(0), None) is not None
+    assert calls == [True]
+    calls.clear()
+    est = align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=None), np.random.default_rng(0), None)
+    assert calls == [True] and not est.one_sided
+
+
+def replace_opts(opts, **kw):
+    import dataclasses
+
+    return dataclasses.replace(opts, **kw)
+
+
+@pytest.mark.parametrize("b_side", ["finds it", "finds nothing"])
+def test_align_takes_the_surer_side_or_declines_a_one_sided_pose(monkeypatch, b_side):
+    """Through ``align``: a's side made unsure of the Table I pose (0.7), b's side finding
+    it surely: merged at b's side's confidence; b's side finding nothing: declined, with
+    the reason in the message, and the pose kept as the candidate."""
+    align_module = importlib.import_module("gridmerge.align")
+    a, b, truth = samples.table1_pair(0)
+    real = align_module._hybrid_search
+    calls = []
+
+    def search(judge, fa, fb):
+        calls.append(judge)
+        if len(calls) == 1:  # a's side
+            est = real(judge, fa, fb)
+            est.confidence = 0.7
+            return est
+        if b_side == "finds nothing":
+            return _one_side(None, 0.0)
+        return real(judge, fa, fb)
+
+    monkeypatch.setattr(align_module, "_hybrid_search", search)
+    r = align(a, b, rng=0)
+    assert len(calls) == 2 and calls[1].a.shape != calls[0].a.shape  # b's side: b is the reference
+    assert corner_error(r.candidate, SimilarityTransform(truth), b.shape) < 1.0
+    if b_side == "finds it":
+        assert r.success and r.confidence > 0.8 and r.details["other_side"] == {**r.details["other_side"], "taken": True, "same_pose": True}
+    else:
+        assert not r.success and r.confidence == 0.7
+        assert r.message.startswith("declined: found from a's side only (from b's side the search finds no pose)")
+    calls.clear()
+    assert align(a, b, rng=0, one_sided_confidence=None).success and len(calls) == 1
+
+
+@pytest.mark.shared
+def test_two_buildings_fit_from_one_side_only_are_declined(shared_data):
+    """HIH_04 - E5_12: the apartment laid into the office's open space at confidence 0.75
+    from the apartment's side; from the office's side the best pose lies over 200 px away.
+    Declined as one-sided; merged when searched from one side only."""
+    from gridmerge.io import load_map
+
+    folder = shared_data / "halmstad"
+    a, b = load_map(folder / "HIH" / "HIH_04.png"), load_map(folder / "E5" / "E5_12.png")
+    r = align(a, b, rng=0)
+    assert not r.success and "found from a's side only" in r.message
+    assert r.details["other_side"]["moved_px"] > 100 and not r.details["other_side"]["same_pose"]
+    assert align(a, b, rng=0, one_sided_confidence=None).success
+
+
+@pytest.mark.shared
+def test_real_maps_merged_from_the_side_that_finds_them_surely(shared_data):
+    """E5_06 - E5_12: from E5_06's side the right pose's walls agree on 34 % and its
+    keypoint matches are weak (declined); from E5_12's side the same pose (2.5 px apart on
+    the shared part) is confirmed by its keypoint matches. Merged within the protocol."""
+    pair, a, b = _e5_pair(shared_data, "E5_06", "E5_12")
+    r = align(a, b, rng=0)
+    assert r.success, r.message
+    assert r.details["other_side"]["taken"] and r.details["other_side"]["moved_px"] < 10
+    assert _within_protocol(r.transform, pair)
+    assert not align(a, b, rng=0, one_sided_confidence=None).success

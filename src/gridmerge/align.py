@@ -170,6 +170,18 @@ class AlignOptions:
         clearly (measured). ``None`` accepts any scale within ``min_scale`` and
         ``max_scale``, for maps whose resolutions are unknown or wrong (CLI
         ``--any-scale``).
+    one_sided_confidence : float or None
+        ``"hybrid"``: a pose found with a confidence below this is sought again from b's
+        side (b as the reference, a aligned onto it). When that search's pose is the same
+        merge (it moves the part of b the two maps share by less than 40 px, median; maps
+        that bend leave the two sides' poses of one merge up to 34 px apart, Halmstad E5),
+        the pair takes the more confident of the two, with its confidence. When it is
+        another pose, or none, the pose is one-sided: it is declined below this
+        confidence. Maps of different places fit by chance from one side only: the four
+        Halmstad cross-building pairs merged (confidence 0.56-0.75) are fit 179-651 px
+        apart from the other side, while right poses of real pairs are found from both
+        sides or, when not, are more confident (docs/benchmarks.md, ninth session).
+        ``None`` searches from a's side only (half the time on pairs below it).
     wall_led : bool
         ``"hybrid"``: when the first, overlap-seeking wall search gives no confident pose,
         search again with the wall-led correlation (:mod:`gridmerge.correlate`), which
@@ -203,6 +215,7 @@ class AlignOptions:
     keypoints_first: float = 0.9
     scale_prior: float = 1.0
     max_scale_disagreement: float | None = 0.15
+    one_sided_confidence: float | None = 0.8
     wall_led: bool = True
 
 
@@ -399,6 +412,10 @@ class Estimate:
     matched : bool
         ``confidence`` comes from the keypoint matches, which confirm the transform far
         beyond chance: its walls need only agree on ``min_wall_agreement_matched``.
+    one_sided : str
+        Why the transform is declined although its confidence passes: the search from
+        b's side found another pose, and its confidence is below
+        ``AlignOptions.one_sided_confidence`` ("" otherwise).
     """
 
     transform: AffineTransform | None
@@ -411,6 +428,7 @@ class Estimate:
     success: bool | None = None
     confidence: float | None = None
     matched: bool = False
+    one_sided: str = ""
 
 
 
@@ -605,6 +623,17 @@ class _Judge:
         self._icp: WallICP | None = None
         self._polished: dict = {}  # pose -> its polish (whatever the score)
 
+    def release(self) -> None:
+        """Let go of the scorer, the refinement's fields and the polish's tables (the
+        judge still measures and verifies poses; it no longer scores or refines them)."""
+        for f in (self._scorer, self._fields):
+            if f is not None:
+                f.result()  # a task of the helper thread ends before its result is dropped
+        self._scorer = self._fields = None
+        self._icp = None
+        self._memo.clear()
+        self._polished.clear()
+
     def _later(self, fn, *args) -> Future:
         """``fn(*args)`` in the helper thread, or now without one."""
         return _done(fn(*args)) if self.pool is None else self.pool.submit(fn, *args)
@@ -793,11 +822,16 @@ class _Judge:
         scores nearly as well without being a different merge."""
         if not self.far_apart(best, t, _OTHER_POSE_PX):
             return False
+        return self.moved(best, t) >= _RIVAL_OVERLAP_PX
+
+    def moved(self, best: AffineTransform, t: AffineTransform) -> float:
+        """How far (median, a's pixels) ``t`` moves the part of b that ``best`` lays on
+        a's known cells from where ``best`` lays it; ``inf`` when ``best`` lays none there."""
         p, on = self._shared_part(best)
         if not on.any():
-            return True
+            return math.inf
         q = self._known_b[on] @ t.params[:2, :2].T + t.params[:2, 2]
-        return bool(np.median(np.hypot(*(q - p[on]).T)) >= _RIVAL_OVERLAP_PX)
+        return float(np.median(np.hypot(*(q - p[on]).T)))
 
     def decide(self, candidates: list[tuple[AffineTransform, str]], *, weighed: bool = False, rivals=()):
         """``(score, best, kind, runner_up, verification)`` of the best candidate.
@@ -860,9 +894,47 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
     # settles on while their rivals are sought (OpenCV and numpy leave the interpreter
     # while they work).
     if (os.cpu_count() or 1) < 2:
-        return _hybrid_search(_Judge(a, b, opts, rng), fa, fb)
+        return _both_sides(a, b, fa, fb, opts, rng, None)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-judge") as pool:
-        return _hybrid_search(_Judge(a, b, opts, rng, pool=pool), fa, fb)
+        return _both_sides(a, b, fa, fb, opts, rng, pool)
+
+
+def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
+    """The search from a's side; below ``opts.one_sided_confidence``, judged with the
+    search from b's side as well (:attr:`AlignOptions.one_sided_confidence`)."""
+    judge = _Judge(a, b, opts, rng, pool=pool)
+    forward = _hybrid_search(judge, fa, fb)
+    tau = opts.one_sided_confidence
+    own = forward.confidence or 0.0
+    if tau is None or forward.transform is None or own >= tau:
+        return forward
+    if own < opts.min_confidence and judge.shared(forward.transform) < _WALL_LED_MIN_SHARED - 0.05:
+        # Declined, and sharing too little for the same merge found from b's side to be
+        # taken (most pairs of a fleet, which do not overlap): not sought again.
+        return forward
+    # From b's side, with a generator of its own (the first search's draws stay as they were);
+    # the first search's tools are let go first (two maps' worth of fields and tables).
+    judge.release()
+    reverse = _hybrid_search(_Judge(b, a, opts, _side_generator(rng), pool=pool), fb, fa)
+    other = reverse.confidence or 0.0
+    back = None if reverse.transform is None else AffineTransform(np.linalg.inv(reverse.transform.params))
+    moved = math.inf if back is None else judge.moved(forward.transform, back)
+    note = {"confidence": round(other, 4), "moved_px": round(moved, 1) if math.isfinite(moved) else None,
+            "source": reverse.details.get("source")}
+    if moved < _OTHER_POSE_PX:
+        # The same merge from both sides: the more confident side's pose and confidence.
+        if other <= own:
+            forward.details["other_side"] = {**note, "same_pose": True, "taken": False}
+            return forward
+        details = {**reverse.details, "other_side": {"confidence": round(own, 4), "moved_px": round(moved, 1),
+                                                     "source": forward.details.get("source"), "same_pose": True, "taken": True}}
+        return Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=judge._verify(back),
+                        confidence=other, matched=reverse.matched)
+    forward.details["other_side"] = {**note, "same_pose": False}
+    where = "no pose" if back is None else f"a pose {moved:.0f} px away" if math.isfinite(moved) else "a pose that shares nothing with it"
+    forward.one_sided = (f"declined: found from a's side only (from b's side the search finds {where}); "
+                         f"a one-sided pose needs confidence {tau:g} (has {own:.2f})")
+    return forward
 
 
 def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
@@ -1213,7 +1285,7 @@ def align(
             by_structure = est.confidence is not None
             conf = float(est.confidence) if by_structure else _confidence(n_inl, v, est.transform.min_samples)
             message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure,
-                                      scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched)
+                                      scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched) or est.one_sided
         else:
             conf = float(est.confidence or 0.0)
             message = "" if est.success else (est.message or "declined by the method's own rule")

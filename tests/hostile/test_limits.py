@@ -401,19 +401,20 @@ NOISE_SCRIPT = textwrap.dedent(
 @pytest.mark.skipif(sys.platform != "linux", reason="peak memory from /proc/self/status (Linux)")
 def test_pure_noise_maps_in_bounded_time_and_memory(h, tmp_path):
     """2000 x 2000 cells of noise each: about 40 000 SIFT keypoints per map, capped to the
-    strongest 20 000, declined in about 10 s on two idle cores (CPU time is checked, which
-    other processes on a busy machine do not inflate; wall time only against hangs); the
+    strongest 20 000, declined in about 20 s on two idle cores (CPU time is checked, which
+    other processes on a busy machine do not inflate; wall time only against hangs): the
+    maps share every cell, so the pose is sought from both sides (about 10 s each); the
     detection-image cap bounds SIFT's memory on larger maps."""
     proc = subprocess.run(
-        [sys.executable, "-c", NOISE_SCRIPT], capture_output=True, text=True, timeout=120, env=h.env(), cwd=tmp_path
+        [sys.executable, "-c", NOISE_SCRIPT], capture_output=True, text=True, timeout=180, env=h.env(), cwd=tmp_path
     )
     assert proc.returncode == 0, h.describe(proc)
     out = json.loads(proc.stdout)
     assert out["success"] is False, out
     assert out["features_capped"] is True
     assert out["keypoints"] == [DEFAULT_LIMITS.max_keypoints] * 2
-    assert out["cpu_s"] < 20.0, out
-    assert out["elapsed_s"] < 60.0, out
+    assert out["cpu_s"] < 40.0, out
+    assert out["elapsed_s"] < 100.0, out
     # SIFT alone would need about 2 GB for the 3000 x 3000 map (220 bytes per pixel).
     assert out["capped_rss_mb"] < 900, out
     assert out["rss_mb"] < 2500, out
