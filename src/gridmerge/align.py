@@ -178,10 +178,15 @@ class AlignOptions:
         the pair takes the more confident of the two, with its confidence. When it is
         another pose, or none, the pose is one-sided: it is declined below this
         confidence. Maps of different places fit by chance from one side only: the four
-        Halmstad cross-building pairs merged (confidence 0.56-0.75) are fit 179-651 px
-        apart from the other side, while right poses of real pairs are found from both
-        sides or, when not, are more confident (docs/benchmarks.md, ninth session).
-        ``None`` searches from a's side only (half the time on pairs below it).
+        Halmstad cross-building pairs that one search merged (confidence 0.56-0.75) are
+        fit 110-550 px away from the other side, and none of the 56 is merged now (2
+        with the maps swapped, at 0.83 and 0.99). Most right poses of real pairs are
+        found from both sides; two Halmstad ones found from one side only, at 0.57 and
+        0.67, are declined (docs/benchmarks.md, ninth session). Pairs declined anyway
+        whose best pose shares under 10 % of the smaller map are not sought again.
+        ``None`` searches from a's side only: pairs below this take half the time (a
+        fleet's loops check its alignments too: 1.5-1.8x faster, and 88 instead of 85 of the
+        91 annotated E5 pairs right).
     wall_led : bool
         ``"hybrid"``: when the first, overlap-seeking wall search gives no confident pose,
         search again with the wall-led correlation (:mod:`gridmerge.correlate`), which
