@@ -575,6 +575,7 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
     if expect == "theirs":
         assert est.confidence == 0.9 and np.allclose(est.transform.params, theirs.params)
         assert est.details["source"] == "keypoints" and est.details["other_side"]["taken"] and not est.one_sided
+        assert est.details["other_side"]["confidence"] == 0.9 and est.details["first_side"] == {"confidence": 0.6, "source": "walls"}
         assert est.verification is not None
     elif expect == "ours":
         assert est.confidence == 0.6 and est.transform is ours and not est.one_sided

@@ -906,7 +906,12 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 
 def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     """The search from a's side; below ``opts.one_sided_confidence``, judged with the
-    search from b's side as well (:attr:`AlignOptions.one_sided_confidence`)."""
+    search from b's side as well (:attr:`AlignOptions.one_sided_confidence`).
+
+    ``details["other_side"]`` describes the search from b's side: its ``confidence``,
+    how far its pose moves the shared part (``moved_px``), its ``source``, whether it is
+    the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
+    and ``details["first_side"]`` holds a's side's confidence and source."""
     judge = _Judge(a, b, opts, rng, pool=pool)
     forward = _hybrid_search(judge, fa, fb)
     tau = opts.one_sided_confidence
@@ -931,8 +936,8 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
         if other <= own:
             forward.details["other_side"] = {**note, "same_pose": True, "taken": False}
             return forward
-        details = {**reverse.details, "other_side": {"confidence": round(own, 4), "moved_px": round(moved, 1),
-                                                     "source": forward.details.get("source"), "same_pose": True, "taken": True}}
+        details = {**reverse.details, "other_side": {**note, "same_pose": True, "taken": True},
+                   "first_side": {"confidence": round(own, 4), "source": forward.details.get("source")}}
         return Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=judge._verify(back),
                         confidence=other, matched=reverse.matched)
     forward.details["other_side"] = {**note, "same_pose": False}
