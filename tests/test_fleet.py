@@ -1,5 +1,6 @@
 """Fleets: many maps, one frame; growing maps merged incrementally; mixed resolutions."""
 
+import importlib
 import math
 
 import numpy as np
@@ -271,3 +272,73 @@ def test_reverify_lets_the_keypoint_matches_confirm_a_pose_of_maps_that_bend(sha
     assert not capped.success  # as reliable as the chain that predicted it, no more
     far = reverify(a, b, SimilarityTransform(translation=(60.0, 0.0)) @ found.transform, runner_up_ratio=0.0, features=features)
     assert not far.success
+
+
+def test_bridges_are_the_edges_on_no_loop():
+    from gridmerge.merge import _bridges
+
+    assert _bridges([(0, 1), (1, 2), (0, 2), (2, 3)]) == [(2, 3)]  # a triangle and a tail
+    assert _bridges([(0, 1), (1, 2)]) == [(0, 1), (1, 2)]
+    assert _bridges([]) == []
+
+
+def _fake_pairs(monkeypatch, aligned):
+    """Three small maps and a fake pairwise search: ``aligned(pair, both_sides)`` says
+    which pairs align (at confidence 0.6); returns the maps and the calls made."""
+    from gridmerge import AlignResult, OccupancyGrid
+    from gridmerge.transforms import SimilarityTransform
+
+    rng = np.random.default_rng(0)
+    maps = []
+    for k in range(3):
+        data = np.zeros((40, 50), np.float32)
+        data[rng.integers(0, 40, 30), rng.integers(0, 50, 30)] = 1.0
+        maps.append(OccupancyGrid(data, name=f"m{k}"))
+    calls = []
+
+    def fake(job):
+        i = next(k for k, m in enumerate(maps) if m is job.a)
+        j = next(k for k, m in enumerate(maps) if m is job.b)
+        both = job.options.one_sided_confidence is not None
+        calls.append(((i, j), both))
+        ok = aligned((i, j), both)
+        t = SimilarityTransform(translation=(3.0, 1.0))
+        return AlignResult(success=ok, transform=t if ok else None, candidate=t, metric_transform=None, confidence=0.6,
+                           acceptance_index=0.9, inliers=10, matches=20, keypoints=(5, 5), method="hybrid",
+                           message="" if ok else "declined: found from a's side only", elapsed_s=0.0,
+                           details={"other_side": {}} if both else {})
+
+    monkeypatch.setattr(importlib.import_module("gridmerge.merge"), "_run_pair", fake)
+    return maps, calls
+
+
+def test_a_fleet_searches_from_both_sides_only_what_no_loop_checks(monkeypatch):
+    """Three maps in a chain (0-1, 1-2; 0-2 declined): pairs are first searched from one
+    side, then the alignments on no loop below ``one_sided_confidence`` again from both
+    sides; one found from one side only is declined there, and its map left unplaced."""
+    maps, calls = _fake_pairs(monkeypatch, lambda pair, both: pair == (0, 1) or (pair == (1, 2) and not both))
+    r = gridmerge.merge(maps)
+    first = [c for c in calls if not c[1]]
+    again = [c for c in calls if c[1]]
+    assert sorted(set(p for p, _ in first)) == [(0, 1), (0, 2), (1, 2)]  # (0, 2) also at its predicted pose
+    assert sorted(p for p, _ in again) == [(0, 1), (1, 2)]  # both bridges, both at 0.6
+    assert r.transforms[1] is not None and r.transforms[2] is None
+    # Two maps: align's own rule, from both sides at once.
+    calls.clear()
+    gridmerge.merge(maps[:2])
+    assert calls == [((0, 1), True)]
+
+
+def test_a_merger_left_with_two_maps_checks_their_pair_from_both_sides(monkeypatch):
+    """Three maps whose pairs all align (a loop checks each): searched from one side only.
+    With one map removed, the remaining pair lies on no loop: searched from both sides."""
+    maps, calls = _fake_pairs(monkeypatch, lambda pair, both: True)
+    merger = Merger()
+    for m in maps:
+        merger.update(m, m.name)
+    assert all(t is not None for t in merger.merge().transforms)
+    assert calls and not any(both for _, both in calls)
+    calls.clear()
+    merger.remove("m2")
+    assert merger.merge().success
+    assert calls == [((0, 1), True)]

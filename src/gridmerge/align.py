@@ -184,9 +184,10 @@ class AlignOptions:
         found from both sides; two Halmstad ones found from one side only, at 0.57 and
         0.67, are declined (docs/benchmarks.md, ninth session). Pairs declined anyway
         whose best pose shares under 10 % of the smaller map are not sought again.
-        ``None`` searches from a's side only: pairs below this take half the time (a
-        fleet's loops check its alignments too: 1.5-1.8x faster, and 88 instead of 85 of the
-        91 annotated E5 pairs right).
+        ``None`` searches from a's side only: pairs below this take half the time.
+        :func:`gridmerge.merge` with three maps or more searches its pairs from one side
+        and, after placing the maps, searches from both sides the alignments that lie on
+        no loop of the map graph (a loop checks the others).
     wall_led : bool
         ``"hybrid"``: when the first, overlap-seeking wall search gives no confident pose,
         search again with the wall-led correlation (:mod:`gridmerge.correlate`), which

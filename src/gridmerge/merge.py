@@ -629,6 +629,13 @@ class Merger:
     * only new maps, maps placed nowhere, and pairs whose known transform no longer
       holds pay the full search.
 
+    With three maps or more, pairs are searched from one side
+    (``AlignOptions.one_sided_confidence=None``): the loops of the map graph check the
+    alignments that lie on them. After the placement, the alignments on no loop (the
+    graph's bridges) below ``one_sided_confidence`` are searched again from both sides,
+    as :func:`gridmerge.align` does for a single pair, and declined when only one side
+    finds them.
+
     Parameters
     ----------
     method : str
@@ -824,8 +831,15 @@ class Merger:
         t = AffineTransform(np.linalg.solve(mi, mj))
         return _Prior(t, 0.0, min(self._pose_conf.get(ni, 0.0), self._pose_conf.get(nj, 0.0)), predicted=True)
 
-    def _job(self, i, j, names, feats, prior: _Prior | None = None) -> _PairJob:
-        return _PairJob(self._maps[names[i]], self._maps[names[j]], self.method, self.options,
+    def _job(self, i, j, names, feats, prior: _Prior | None = None, *, both_sides: bool = False) -> _PairJob:
+        """A pair's job. In a fleet of three maps or more a pair is searched from one side
+        (``one_sided_confidence=None``): the map graph's loops check its alignments, and
+        the alignments no loop checks are searched from both sides afterwards
+        (:meth:`_check_bridges`); ``both_sides`` asks for that second search."""
+        options = self.options
+        if not both_sides and len(self._maps) >= 3 and options.one_sided_confidence is not None:
+            options = replace(options, one_sided_confidence=None)
+        return _PairJob(self._maps[names[i]], self._maps[names[j]], self.method, options,
                         _pair_seed(self._seed, self._digests[names[i]], self._digests[names[j]]), (feats[i], feats[j]), prior)
 
     def _store(self, names, i, j, r: AlignResult, how: str) -> PairResult:
@@ -946,6 +960,9 @@ class Merger:
                 self._search(names, feats, unsearched, results, stats)
                 poses, report, warnings = self._solve(maps, names, results, reference)
 
+        if verified and self._check_bridges(names, feats, results, stats):
+            poses, report, warnings = self._solve(maps, names, results, reference)
+
         result = self._fuse(maps, names, results, poses, report, warnings, reference, stats)
         result.elapsed_s = time.perf_counter() - t0
         if result.success and result.grid is not None:
@@ -953,6 +970,33 @@ class Merger:
             self._poses = {names[k]: (maps[k], to_metric @ result.transforms[k].params) for k in result.placed}  # type: ignore[union-attr]
             self._pose_conf = {names[k]: float(result.confidences[k]) for k in result.placed}  # type: ignore[arg-type]
         return result
+
+    def _check_bridges(self, names, feats, results, stats) -> bool:
+        """Search again, from both maps' sides, the used alignments that no loop of the map
+        graph checks (its bridges) and that are below ``one_sided_confidence``, unless
+        they were (a pair of two maps is searched from both sides at once; a Merger that
+        had three maps and has two left may hold one-sided alignments): a pose found from
+        one side only is declined there, as :func:`align` declines it for a single pair.
+        Returns whether any alignment changed."""
+        tau = self.options.one_sided_confidence
+        if tau is None:
+            return False
+        used = [(i, j) for (i, j), p in results.items() if p.used]
+        todo = [(i, j) for i, j in _bridges(used) if results[(i, j)].confidence < tau
+                and not {"other_side", "predicted", "reverified"} & set(results[(i, j)].result.details)]
+        if not todo:
+            return False
+        jobs = [self._job(i, j, names, feats, both_sides=True) for i, j in todo]
+        t1 = time.perf_counter()
+        changed = False
+        for (i, j), r in zip(todo, self._run("pairs", _run_pair, jobs)):
+            before = results[(i, j)].result
+            results[(i, j)] = self._store(names, i, j, r, "search")
+            same = r.success == before.success and (r.transform is None or np.array_equal(r.transform.params, before.transform.params))
+            changed = changed or not same
+        stats.align_s += time.perf_counter() - t1
+        stats.pairs_searched += len(todo)
+        return changed
 
     def _search(self, names, feats, pairs, results, stats) -> None:
         if not pairs:
@@ -1050,6 +1094,27 @@ class Merger:
         stats.fuse_s = time.perf_counter() - t1
         msg = f"merged {len(placed)} of {n} maps" + (f"; unplaced: {', '.join(unplaced)}" if unplaced else "")
         return MergeResult(True, grid, transforms=transforms, message=msg, **base)
+
+
+def _bridges(edges: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The edges ``(i, j)`` of an undirected graph that lie on no cycle (removing one
+    disconnects its two maps)."""
+    out = []
+    for e in edges:
+        adj: dict[int, list[int]] = {}
+        for f in edges:
+            if f != e:
+                adj.setdefault(f[0], []).append(f[1])
+                adj.setdefault(f[1], []).append(f[0])
+        seen, stack = {e[0]}, [e[0]]
+        while stack:
+            for v in adj.get(stack.pop(), []):
+                if v not in seen:
+                    seen.add(v)
+                    stack.append(v)
+        if e[1] not in seen:
+            out.append(e)
+    return out
 
 
 def _chain_confidence(report: GraphReport, k: int) -> float:
