@@ -368,3 +368,34 @@ def test_simulated_from_real_maps(shared_data):
     ds = datasets.simulated(n=1, seed=0, data_dir=shared_data, sources=("willow",))
     c = ds[0]
     assert c.meta["source"] == "willow" and c.positive and not ds.notes
+
+
+def test_swapped_cases_align_a_onto_b(tmp_path):
+    """``NAME-swapped``: the same pairs, b as the reference; the truth inverted and the
+    annotated points swapped, so that the protocol judges the swapped truth right."""
+    root = tmp_path / "halmstad"
+    _write_halmstad(root, {"E9": ["E9_01", "E9_02"], "H2": ["H2_01"]}, {"E9": [("E9_01", "E9_02", "sensor")], "H2": []})
+    # A fit that is not its own inverse, and points that agree with it.
+    import json
+
+    doc = json.loads((root / "E9_pairs.json").read_text())
+    fit = np.array([[math.cos(0.3), -math.sin(0.3), 5.0], [math.sin(0.3), math.cos(0.3), -2.0], [0, 0, 1.0]])
+    pts_b = np.array([[3.0, 4.0], [20.0, 6.0], [10.0, 25.0]])
+    doc["pairs"][0].update(fit_b_to_a=fit[:2].tolist(), points_b=pts_b.tolist(),
+                           points_a=(pts_b @ fit[:2, :2].T + fit[:2, 2]).tolist())
+    (root / "E9_pairs.json").write_text(json.dumps(doc))
+    plain = datasets.load("halmstad", data_dir=tmp_path)
+    swap = datasets.load("halmstad-swapped", data_dir=tmp_path)
+    assert len(swap) == len(plain) == 1 + 2  # one sensor pair, 2 x 1 cross pairs
+    c, s = plain[0], swap[0]
+    assert s.id == "halmstad-swapped/E9_02-E9_01" and s.dataset == "halmstad-swapped"
+    assert s.a == c.b and s.b == c.a and np.allclose(s.truth @ c.truth, np.eye(3))
+    assert s.meta["points_a"] == c.meta["points_b"] and s.meta["map_b"] == "E9_01" and s.meta["swapped"]
+    assert s.meta["rotation_deg"] == pytest.approx(-math.degrees(0.3))
+    assert judge(s.truth, s.truth, s.b.shape, positive=True, protocol=s.meta)["success"]
+    assert halmstad_point_error(s.truth, s.meta["points_a"], s.meta["points_b"]) == pytest.approx(0.0, abs=1e-9)
+    cross = [swap[k] for k in range(1, 3)]
+    assert all(x.dataset == "halmstad-cross-swapped" and not x.positive and x.truth is None for x in cross)
+    assert datasets.load("paper-swapped")[0].id == "paper-swapped/table1-seed0"
+    with pytest.raises(GridMergeError):
+        datasets.load("nothing-swapped")

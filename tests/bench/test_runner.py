@@ -224,3 +224,11 @@ def test_dataset_names_choose_halmstad_environments(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code not in (0, 1) and "CC_pairs.json" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "run" / "cases.jsonl").exists()
+
+
+def test_swapped_dataset_names():
+    for ok in ("halmstad-swapped", "simulated-swapped", "halmstad:E5-swapped", "paper-swapped"):
+        assert cli_bench._dataset_name(ok) == ok
+    for bad in ("all-swapped", "-swapped", "nothing-swapped"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            cli_bench._dataset_name(bad)

@@ -66,6 +66,7 @@ __all__ = [
     "robot_views_pair",
     "source_map",
     "source_names",
+    "swapped",
 ]
 
 #: Names of the data sets :func:`load` knows.
@@ -966,6 +967,44 @@ def halmstad(
     return Dataset("halmstad", len(entries), build, notes)
 
 
+def swapped(ds: Dataset) -> Dataset:
+    """The cases of ``ds`` with their two maps swapped: b is the reference and a is
+    aligned onto it (``truth`` inverted; annotated points, map names and the rotation and
+    scale of the Halmstad pairs swapped alike). A method whose result depends on which
+    map comes first scores differently here. Case ids ``"halmstad-swapped/E5_02-E5_01"``
+    (data set name with ``-swapped``).
+
+    Examples
+    --------
+    >>> from gridmerge.bench import datasets
+    >>> case = datasets.swapped(datasets.paper())[0]
+    >>> case.id, case.dataset
+    ('paper-swapped/table1-seed0', 'paper-swapped')
+    """
+
+    def build(k: int) -> Case:
+        c = ds[k]
+        meta = dict(c.meta)
+        for x, y in (("points_a", "points_b"), ("map_a", "map_b")):
+            if x in meta or y in meta:
+                meta[x], meta[y] = c.meta.get(y), c.meta.get(x)
+        truth = None if c.truth is None else np.linalg.inv(np.asarray(c.truth, dtype=float))
+        if truth is not None:
+            if "rotation_deg" in meta:
+                meta["rotation_deg"] = math.degrees(math.atan2(truth[1, 0], truth[0, 0]))
+            if "scale" in meta:
+                meta["scale"] = float(math.hypot(truth[0, 0], truth[1, 0]))
+        meta["swapped"] = True
+        name = f"{c.dataset}-swapped"
+        if "map_a" in meta:
+            rest = f"{meta['map_a']}-{meta['map_b']}"
+        else:
+            rest = c.id.split("/", 1)[1]
+        return Case(f"{name}/{rest}", name, c.b, c.a, truth, c.positive, meta)
+
+    return Dataset(f"{ds.name}-swapped", len(ds), build, list(ds.notes))
+
+
 def _halmstad_map(root: str, env: str, stem: str) -> OccupancyGrid:
     if stem.endswith("layout"):
         return _halmstad_layout(root, env, stem)  # decoding the RGBA blueprint is slow: cached
@@ -1011,7 +1050,9 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     annotated pair and every cross-building negative (with ``quick``: the first 2 sensor
     pairs and the first layout pair of each environment, and one cross pair), or the first
     ``n`` of each kind and environment; ``halmstad:ENV`` or ``halmstad:ENV+ENV...``: the
-    same with these environments only; ``paper``: seeds 0-4 (seed 0 with ``quick``).
+    same with these environments only; ``paper``: seeds 0-4 (seed 0 with ``quick``);
+    any of them followed by ``-swapped`` (``halmstad-swapped``): its cases with the two
+    maps swapped (:func:`swapped`).
 
     Raises
     ------
@@ -1030,6 +1071,8 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
         return halmstad(data_dir, limit=n, environments=envs)
     if name == "paper":
         return paper((0,) if quick else tuple(range(5)))
+    if name.endswith("-swapped") and name != "-swapped":
+        return swapped(load(name[: -len("-swapped")], seed=seed, n=n, quick=quick, data_dir=data_dir))
     raise GridMergeError(f"unknown data set {name!r} (use {', '.join(DATASETS)})")
 
 

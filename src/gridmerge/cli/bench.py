@@ -29,10 +29,12 @@ _DATASET_CHOICES = ("simulated", "halmstad", "paper", "all")
 
 def _dataset_name(text: str) -> str:
     """``--dataset``'s value: one of :data:`_DATASET_CHOICES`, or ``halmstad:ENV[+ENV...]``."""
-    envs = text.split(":", 1)[1].split("+") if text.startswith("halmstad:") else []
-    if text in _DATASET_CHOICES or (envs and all(envs)):
+    base = text[: -len("-swapped")] if text.endswith("-swapped") and text != "all-swapped" else text
+    envs = base.split(":", 1)[1].split("+") if base.startswith("halmstad:") else []
+    if base in _DATASET_CHOICES or (envs and all(envs)):
         return text
-    raise argparse.ArgumentTypeError(f"unknown data set {text!r} (use {', '.join(_DATASET_CHOICES)} or halmstad:ENV)")
+    raise argparse.ArgumentTypeError(
+        f"unknown data set {text!r} (use {', '.join(_DATASET_CHOICES)} or halmstad:ENV, each but all with -swapped)")
 
 
 class _BenchUsageError(GridMergeError):
@@ -70,7 +72,8 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
         type=_dataset_name,
         metavar="NAME",
         help="data set to run: simulated, halmstad, paper or all (default: all), or halmstad:ENV[+ENV...] for some "
-        "of the Halmstad folder's environments (halmstad:E5, halmstad:E5+HIH); repeatable",
+        "of the Halmstad folder's environments (halmstad:E5, halmstad:E5+HIH); NAME-swapped runs a data set "
+        "with the two maps of every pair swapped (halmstad-swapped); repeatable",
     )
     add(
         "--methods",
