@@ -275,11 +275,11 @@ def test_reverify_lets_the_keypoint_matches_confirm_a_pose_of_maps_that_bend(sha
 
 
 def test_bridges_are_the_edges_on_no_loop():
-    from gridmerge.merge import _bridges
+    from gridmerge.graph import bridges
 
-    assert _bridges([(0, 1), (1, 2), (0, 2), (2, 3)]) == [(2, 3)]  # a triangle and a tail
-    assert _bridges([(0, 1), (1, 2)]) == [(0, 1), (1, 2)]
-    assert _bridges([]) == []
+    assert bridges([(0, 1), (1, 2), (0, 2), (2, 3)]) == [(2, 3)]  # a triangle and a tail
+    assert bridges([(0, 1), (1, 2)]) == [(0, 1), (1, 2)]
+    assert bridges([]) == []
 
 
 def _fake_pairs(monkeypatch, aligned):

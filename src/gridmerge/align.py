@@ -928,7 +928,7 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     judge.release()
     reverse = _hybrid_search(_Judge(b, a, opts, _side_generator(rng), pool=pool), fb, fa)
     other = reverse.confidence or 0.0
-    back = None if reverse.transform is None else AffineTransform(np.linalg.inv(reverse.transform.params))
+    back = None if reverse.transform is None else reverse.transform.inverse
     moved = math.inf if back is None else judge.moved(forward.transform, back)
     note = {"confidence": round(other, 4), "moved_px": round(moved, 1) if math.isfinite(moved) else None,
             "source": reverse.details.get("source")}

@@ -43,7 +43,7 @@ import numpy as np
 
 from .transforms import AffineTransform, SimilarityTransform
 
-__all__ = ["Edge", "GraphReport", "spanning_tree", "optimize_poses", "edge_residuals", "solve"]
+__all__ = ["Edge", "GraphReport", "spanning_tree", "bridges", "optimize_poses", "edge_residuals", "solve"]
 
 
 @dataclass(frozen=True)
@@ -147,6 +147,33 @@ def spanning_tree(n: int, edges: Sequence[Edge], reference: int = 0) -> tuple[li
                 heapq.heappush(heap, (-f.confidence, counter, k, f))
                 counter += 1
     return tree, parents, order
+
+
+def bridges(edges: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The edges ``(i, j)`` of an undirected graph that lie on no cycle: removing one
+    disconnects its two maps, so no loop checks its alignment.
+
+    Examples
+    --------
+    >>> bridges([(0, 1), (1, 2), (0, 2), (2, 3)])  # a triangle and a tail
+    [(2, 3)]
+    """
+    out = []
+    for e in edges:
+        adj: dict[int, list[int]] = {}
+        for f in edges:
+            if f != e:
+                adj.setdefault(f[0], []).append(f[1])
+                adj.setdefault(f[1], []).append(f[0])
+        seen, stack = {e[0]}, [e[0]]
+        while stack:
+            for v in adj.get(stack.pop(), []):
+                if v not in seen:
+                    seen.add(v)
+                    stack.append(v)
+        if e[1] not in seen:
+            out.append(e)
+    return out
 
 
 def _chain(n: int, tree: Sequence[Edge], parents: Sequence[int | None], order: Sequence[int], reference: int) -> list[AffineTransform | None]:

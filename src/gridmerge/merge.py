@@ -60,7 +60,7 @@ from .align import (
 from .errors import GridMergeError
 from .features import Features
 from .fuse import FUSION_RULES, fuse_values, warp_values
-from .graph import Edge, GraphReport, solve
+from .graph import Edge, GraphReport, bridges, solve
 from .grid import OccupancyGrid
 from .limits import DEFAULT_LIMITS, Limits, extractor_for
 from .matching import match_snn
@@ -982,7 +982,7 @@ class Merger:
         if tau is None:
             return False
         used = [(i, j) for (i, j), p in results.items() if p.used]
-        todo = [(i, j) for i, j in _bridges(used) if results[(i, j)].confidence < tau
+        todo = [(i, j) for i, j in bridges(used) if results[(i, j)].confidence < tau
                 and not {"other_side", "predicted", "reverified"} & set(results[(i, j)].result.details)]
         if not todo:
             return False
@@ -1094,27 +1094,6 @@ class Merger:
         stats.fuse_s = time.perf_counter() - t1
         msg = f"merged {len(placed)} of {n} maps" + (f"; unplaced: {', '.join(unplaced)}" if unplaced else "")
         return MergeResult(True, grid, transforms=transforms, message=msg, **base)
-
-
-def _bridges(edges: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
-    """The edges ``(i, j)`` of an undirected graph that lie on no cycle (removing one
-    disconnects its two maps)."""
-    out = []
-    for e in edges:
-        adj: dict[int, list[int]] = {}
-        for f in edges:
-            if f != e:
-                adj.setdefault(f[0], []).append(f[1])
-                adj.setdefault(f[1], []).append(f[0])
-        seen, stack = {e[0]}, [e[0]]
-        while stack:
-            for v in adj.get(stack.pop(), []):
-                if v not in seen:
-                    seen.add(v)
-                    stack.append(v)
-        if e[1] not in seen:
-            out.append(e)
-    return out
 
 
 def _chain_confidence(report: GraphReport, k: int) -> float:

@@ -60,6 +60,7 @@ __all__ = [
     "simulated",
     "halmstad",
     "halmstad_environments",
+    "check_name",
     "paper",
     "load",
     "measure_overlap",
@@ -821,7 +822,8 @@ def halmstad_environments(data_dir=None) -> list:
     if d is None or not (d / "halmstad").is_dir():
         return []
     root = d / "halmstad"
-    return sorted(f.name[: -len("_pairs.json")] for f in root.glob("*_pairs.json") if (root / f.name[: -len("_pairs.json")]).is_dir())
+    names = (f.name[: -len("_pairs.json")] for f in root.glob("*_pairs.json"))
+    return sorted(env for env in names if (root / env).is_dir())
 
 
 def _map_number(stem: str) -> int:
@@ -917,11 +919,12 @@ def halmstad(
     entries.sort(key=lambda e: 0 if e[1].get("kind", "sensor") == "sensor" else 1)
     if "cross" in kinds:
         envs = sorted(set(environments))
+        stems = {env: _sensor_stems(root, env) for env in envs}
         cross = []
         for i, first in enumerate(envs):
             for other in envs[i + 1:]:
-                for m in _sensor_stems(root, first):
-                    for h in _sensor_stems(root, other):
+                for m in stems[first]:
+                    for h in stems[other]:
                         pair = ((first, m), (other, h)) if _map_number(m) % 2 else ((other, h), (first, m))
                         cross.append(("cross", {"kind": "cross", "a": pair[0], "b": pair[1]}))
         entries += cross[:limit]
@@ -1059,21 +1062,43 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     GridMergeError
         Unknown name; ``halmstad`` without the shared data.
     """
-    if name == "simulated":
+    base, envs, swap = check_name(name)
+    if swap:
+        return swapped(load(name[: -len(_SWAPPED)], seed=seed, n=n, quick=quick, data_dir=data_dir))
+    if base == "simulated":
         return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir)
-    if name == "halmstad" or name.startswith("halmstad:"):
-        envs = name.split(":", 1)[1].split("+") if ":" in name else None
+    if base == "halmstad":
         if quick:
             sensor = halmstad(data_dir, kinds=("sensor",), limit=2, environments=envs)
             layout = halmstad(data_dir, kinds=("layout",), limit=1, environments=envs)
             cross = halmstad(data_dir, kinds=("cross",), limit=1, environments=envs)
             return _concat("halmstad", [sensor, layout, cross])
         return halmstad(data_dir, limit=n, environments=envs)
-    if name == "paper":
-        return paper((0,) if quick else tuple(range(5)))
-    if name.endswith("-swapped") and name != "-swapped":
-        return swapped(load(name[: -len("-swapped")], seed=seed, n=n, quick=quick, data_dir=data_dir))
-    raise GridMergeError(f"unknown data set {name!r} (use {', '.join(DATASETS)})")
+    return paper((0,) if quick else tuple(range(5)))
+
+
+_SWAPPED = "-swapped"
+
+
+def check_name(name: str) -> tuple[str, Optional[list], bool]:
+    """``(data set, environments, swapped)`` of a name :func:`load` knows: one of
+    :data:`DATASETS`, ``halmstad:ENV[+ENV...]`` (environments, else ``None``), either
+    followed by ``-swapped``.
+
+    Raises
+    ------
+    GridMergeError
+        Any other name.
+    """
+    swap = name.endswith(_SWAPPED)
+    base = name[: -len(_SWAPPED)] if swap else name
+    envs = None
+    if base.startswith("halmstad:"):
+        envs = base.split(":", 1)[1].split("+")
+        base = "halmstad" if all(envs) else base
+    if base not in DATASETS:
+        raise GridMergeError(f"unknown data set {name!r} (use {', '.join(DATASETS)} or halmstad:ENV, each with {_SWAPPED} or not)")
+    return base, envs, swap
 
 
 def _concat(name: str, parts: Sequence[Dataset]) -> Dataset:

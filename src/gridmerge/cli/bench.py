@@ -28,13 +28,17 @@ _DATASET_CHOICES = ("simulated", "halmstad", "paper", "all")
 
 
 def _dataset_name(text: str) -> str:
-    """``--dataset``'s value: one of :data:`_DATASET_CHOICES`, or ``halmstad:ENV[+ENV...]``."""
-    base = text[: -len("-swapped")] if text.endswith("-swapped") and text != "all-swapped" else text
-    envs = base.split(":", 1)[1].split("+") if base.startswith("halmstad:") else []
-    if base in _DATASET_CHOICES or (envs and all(envs)):
+    """``--dataset``'s value: ``all``, or a name :func:`gridmerge.bench.datasets.check_name`
+    knows (``halmstad:ENV[+ENV...]``, ``-swapped``)."""
+    if text == "all":
         return text
-    raise argparse.ArgumentTypeError(
-        f"unknown data set {text!r} (use {', '.join(_DATASET_CHOICES)} or halmstad:ENV, each but all with -swapped)")
+    from ..bench.datasets import check_name
+
+    try:
+        check_name(text)
+    except GridMergeError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
 
 
 class _BenchUsageError(GridMergeError):
