@@ -284,7 +284,8 @@ def test_bridges_are_the_edges_on_no_loop():
 
 def _fake_pairs(monkeypatch, aligned):
     """Three small maps and a fake pairwise search: ``aligned(pair, both_sides)`` says
-    which pairs align (at confidence 0.6); returns the maps and the calls made."""
+    which pairs align (at confidence 0.6), also when a known pose is re-verified;
+    returns the maps and the calls made ``(pair, both_sides)``, or ``(pair, "reverify")``."""
     from gridmerge import AlignResult, OccupancyGrid
     from gridmerge.transforms import SimilarityTransform
 
@@ -297,16 +298,15 @@ def _fake_pairs(monkeypatch, aligned):
     calls = []
 
     def fake(job):
-        i = next(k for k, m in enumerate(maps) if m is job.a)
-        j = next(k for k, m in enumerate(maps) if m is job.b)
+        i, j = int(job.a.name[1:]), int(job.b.name[1:])  # by name: a map may be updated
         both = job.options.one_sided_confidence is not None
-        calls.append(((i, j), both))
+        calls.append(((i, j), "reverify" if job.prior is not None else both))
         ok = aligned((i, j), both)
         t = SimilarityTransform(translation=(3.0, 1.0))
+        details = {"reverified": True} if job.prior is not None else {"other_side": {}} if both else {}
         return AlignResult(success=ok, transform=t if ok else None, candidate=t, metric_transform=None, confidence=0.6,
                            acceptance_index=0.9, inliers=10, matches=20, keypoints=(5, 5), method="hybrid",
-                           message="" if ok else "declined: found from a's side only", elapsed_s=0.0,
-                           details={"other_side": {}} if both else {})
+                           message="" if ok else "declined: found from a's side only", elapsed_s=0.0, details=details)
 
     monkeypatch.setattr(importlib.import_module("gridmerge.merge"), "_run_pair", fake)
     return maps, calls
@@ -318,8 +318,8 @@ def test_a_fleet_searches_from_both_sides_only_what_no_loop_checks(monkeypatch):
     sides; one found from one side only is declined there, and its map left unplaced."""
     maps, calls = _fake_pairs(monkeypatch, lambda pair, both: pair == (0, 1) or (pair == (1, 2) and not both))
     r = gridmerge.merge(maps)
-    first = [c for c in calls if not c[1]]
-    again = [c for c in calls if c[1]]
+    first = [c for c in calls if c[1] is not True]  # one side, or re-verified at the predicted pose
+    again = [c for c in calls if c[1] is True]
     assert sorted(set(p for p, _ in first)) == [(0, 1), (0, 2), (1, 2)]  # (0, 2) also at its predicted pose
     assert sorted(p for p, _ in again) == [(0, 1), (1, 2)]  # both bridges, both at 0.6
     assert r.transforms[1] is not None and r.transforms[2] is None
@@ -342,3 +342,37 @@ def test_a_merger_left_with_two_maps_checks_their_pair_from_both_sides(monkeypat
     merger.remove("m2")
     assert merger.merge().success
     assert calls == [((0, 1), True)]
+
+
+def _grown(m):
+    """A newer version of map ``m``: one more cell seen."""
+    data = m.data.copy()
+    data[0, 0] = 1.0 - data[0, 0]
+    return m.replace(data=data)
+
+
+def test_a_merger_checks_a_re_verified_alignment_that_became_a_bridge(monkeypatch):
+    """Three maps whose pairs all align (a loop checks each), searched from one side.
+    Two maps grow and 0-2 no longer aligns: 0-1 and 1-2, re-verified at their known
+    poses, are bridges now, never searched from both sides: they are searched so, and
+    1-2, found from one side only, is declined. A re-verified pose that was searched
+    from both sides keeps that, and is not searched again."""
+    state = {"broken": False}
+    maps, calls = _fake_pairs(monkeypatch, lambda pair, both: not (state["broken"] and (pair == (0, 2) or (pair == (1, 2) and both))))
+    merger = Merger()
+    for m in maps:
+        merger.update(m, m.name)
+    assert all(t is not None for t in merger.merge().transforms)
+    calls.clear()
+    state["broken"] = True
+    merger.update(_grown(maps[0]), "m0")
+    merger.update(_grown(maps[2]), "m2")
+    r = merger.merge()
+    assert sorted(set(p for p, how in calls if how == "reverify")) == [(0, 1), (0, 2), (1, 2)]  # (0, 2) also as predicted
+    assert sorted(p for p, how in calls if how is True) == [(0, 1), (1, 2)]
+    assert r.transforms[1] is not None and r.transforms[2] is None
+    # 0-1 grows again: re-verified, and not searched from both sides a second time.
+    calls.clear()
+    merger.update(_grown(maps[1]), "m1")
+    merger.merge()
+    assert ((0, 1), "reverify") in calls and ((0, 1), True) not in calls

@@ -891,6 +891,9 @@ class Merger:
             t1 = time.perf_counter()
             for (i, j, prior), r in zip(recheck, self._run("pairs", _run_pair, jobs)):
                 if r.success:
+                    before = self._pairs[(names[i], names[j])].result.details
+                    if not prior.predicted and "other_side" in before:  # its pose was searched from both sides
+                        r.details["other_side"] = before["other_side"]
                     results[(i, j)] = self._store(names, i, j, r, "reverify")
                 elif prior.predicted:  # a predicted pose that does not hold: not searched again
                     r.details["predicted"] = True
@@ -960,7 +963,11 @@ class Merger:
                 self._search(names, feats, unsearched, results, stats)
                 poses, report, warnings = self._solve(maps, names, results, reference)
 
-        if verified and self._check_bridges(names, feats, results, stats):
+        checked: set = set()
+        while verified and self._check_bridges(names, feats, results, stats, checked):
+            # Declining a bridge cannot make another alignment a bridge, but the graph
+            # solved again may use other alignments: check until nothing changes (each
+            # pair at most once).
             poses, report, warnings = self._solve(maps, names, results, reference)
 
         result = self._fuse(maps, names, results, poses, report, warnings, reference, stats)
@@ -971,21 +978,24 @@ class Merger:
             self._pose_conf = {names[k]: float(result.confidences[k]) for k in result.placed}  # type: ignore[arg-type]
         return result
 
-    def _check_bridges(self, names, feats, results, stats) -> bool:
+    def _check_bridges(self, names, feats, results, stats, checked: set) -> bool:
         """Search again, from both maps' sides, the used alignments that no loop of the map
         graph checks (its bridges) and that are below ``one_sided_confidence``, unless
         they were (a pair of two maps is searched from both sides at once; a Merger that
-        had three maps and has two left may hold one-sided alignments): a pose found from
+        had three maps and has two left may hold one-sided alignments; an alignment
+        re-verified after a map grew keeps its search's ``other_side``): a pose found from
         one side only is declined there, as :func:`align` declines it for a single pair.
-        Returns whether any alignment changed."""
+        Poses predicted through the other maps lie on a loop. ``checked``: the pairs
+        searched so in this merge (updated). Returns whether any alignment changed."""
         tau = self.options.one_sided_confidence
         if tau is None:
             return False
         used = [(i, j) for (i, j), p in results.items() if p.used]
-        todo = [(i, j) for i, j in bridges(used) if results[(i, j)].confidence < tau
-                and not {"other_side", "predicted", "reverified"} & set(results[(i, j)].result.details)]
+        todo = [(i, j) for i, j in bridges(used) if results[(i, j)].confidence < tau and (i, j) not in checked
+                and not {"other_side", "predicted"} & set(results[(i, j)].result.details)]
         if not todo:
             return False
+        checked.update(todo)
         jobs = [self._job(i, j, names, feats, both_sides=True) for i, j in todo]
         t1 = time.perf_counter()
         changed = False
