@@ -634,7 +634,8 @@ class Merger:
     alignments that lie on them. After the placement, the alignments on no loop (the
     graph's bridges) below ``one_sided_confidence`` are searched again from both sides,
     as :func:`gridmerge.align` does for a single pair, and declined when only one side
-    finds them.
+    finds them. That holds for an alignment re-verified after a map grew, unless its
+    pose was searched from both sides before.
 
     Parameters
     ----------
