@@ -280,6 +280,43 @@ def test_bridges_are_the_edges_on_no_loop():
     assert bridges([(0, 1), (1, 2), (0, 2), (2, 3)]) == [(2, 3)]  # a triangle and a tail
     assert bridges([(0, 1), (1, 2)]) == [(0, 1), (1, 2)]
     assert bridges([]) == []
+    assert bridges([(0, 1), (0, 1), (1, 2)]) == [(1, 2)]  # two alignments of one pair form a loop
+    assert bridges([(0, 1), (2, 3), (3, 4), (4, 2)]) == [(0, 1)]  # two components
+
+
+def _bridges_by_removal(edges):
+    """The definition: an edge whose removal disconnects its two ends."""
+    out = []
+    for k, (i, j) in enumerate(edges):
+        adj: dict = {}
+        for m, (u, v) in enumerate(edges):
+            if m != k:
+                adj.setdefault(u, []).append(v)
+                adj.setdefault(v, []).append(u)
+        seen, stack = {i}, [i]
+        while stack:
+            for v in adj.get(stack.pop(), []):
+                if v not in seen:
+                    seen.add(v)
+                    stack.append(v)
+        if j not in seen:
+            out.append((i, j))
+    return out
+
+
+def test_bridges_agree_with_their_definition_on_random_graphs():
+    from gridmerge.graph import bridges
+
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        n = int(rng.integers(2, 12))
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+        keep = rng.random(len(pairs)) < rng.uniform(0.1, 0.5)
+        edges = [p for p, k in zip(pairs, keep) if k]
+        assert bridges(edges) == _bridges_by_removal(edges)
+    # A long chain: no recursion limit.
+    chain = [(k, k + 1) for k in range(5000)]
+    assert bridges(chain) == chain
 
 
 def _fake_pairs(monkeypatch, aligned):

@@ -151,29 +151,50 @@ def spanning_tree(n: int, edges: Sequence[Edge], reference: int = 0) -> tuple[li
 
 def bridges(edges: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
     """The edges ``(i, j)`` of an undirected graph that lie on no cycle: removing one
-    disconnects its two maps, so no loop checks its alignment.
+    disconnects its two maps, so no loop checks its alignment. In the order given; an
+    edge given twice lies on a cycle (the two copies).
+
+    One depth-first search (Tarjan's bridge finding): an edge to a child is a bridge when
+    nothing below the child reaches back above it. Linear in the edges.
 
     Examples
     --------
     >>> bridges([(0, 1), (1, 2), (0, 2), (2, 3)])  # a triangle and a tail
     [(2, 3)]
     """
-    out = []
-    for e in edges:
-        adj: dict[int, list[int]] = {}
-        for f in edges:
-            if f != e:
-                adj.setdefault(f[0], []).append(f[1])
-                adj.setdefault(f[1], []).append(f[0])
-        seen, stack = {e[0]}, [e[0]]
+    adj: dict[int, list[tuple[int, int]]] = {}  # vertex -> [(neighbour, edge index)]
+    for k, (i, j) in enumerate(edges):
+        adj.setdefault(i, []).append((j, k))
+        adj.setdefault(j, []).append((i, k))
+    order: dict[int, int] = {}  # discovery index
+    low: dict[int, int] = {}  # lowest discovery index reached from the subtree
+    found: set[int] = set()
+    for root in adj:
+        if root in order:
+            continue
+        order[root] = low[root] = len(order)
+        # Iterative, for fleets of any size: (vertex, edge it was entered by, next neighbour).
+        stack = [(root, -1, 0)]
         while stack:
-            for v in adj.get(stack.pop(), []):
-                if v not in seen:
-                    seen.add(v)
-                    stack.append(v)
-        if e[1] not in seen:
-            out.append(e)
-    return out
+            v, via, k = stack[-1]
+            if k < len(adj[v]):
+                stack[-1] = (v, via, k + 1)
+                w, e = adj[v][k]
+                if e == via:
+                    continue
+                if w in order:
+                    low[v] = min(low[v], order[w])
+                else:
+                    order[w] = low[w] = len(order)
+                    stack.append((w, e, 0))
+                continue
+            stack.pop()
+            if stack:
+                parent = stack[-1][0]
+                low[parent] = min(low[parent], low[v])
+                if low[v] > order[parent]:
+                    found.add(via)
+    return [e for k, e in enumerate(edges) if k in found]
 
 
 def _chain(n: int, tree: Sequence[Edge], parents: Sequence[int | None], order: Sequence[int], reference: int) -> list[AffineTransform | None]:
