@@ -311,6 +311,32 @@ def test_a_pose_turned_about_the_overlap_is_no_rival():
     assert not judge.rival(best, best)
 
 
+def test_a_pose_turned_about_one_end_of_the_overlap_is_no_rival():
+    """The same merge fitted to the other end of maps that bend: turned about one end of
+    the shared part, a pose moves its far end, and its median, beyond 25 px but the part
+    near that end little. It is no rival; turned ten times as far it is, and so is a pose
+    that moves every part of the overlap."""
+    from gridmerge.align import AlignOptions, _Judge
+
+    a, b, truth = samples.robot_pair(0)
+    best = SimilarityTransform(truth)
+    judge = _Judge(a, b, AlignOptions(), np.random.default_rng(0))
+    p, on = judge._shared_part(best)
+    p = p[on]
+    axis = np.linalg.svd(p - p.mean(axis=0), full_matrices=False)[2][0]
+    along = (p - p.mean(axis=0)) @ axis
+    end = p[np.argmin(along)]
+    reach = np.median(np.hypot(*(p - end).T))
+    deg = math.degrees(35.0 / reach)  # moves the median 35 px
+    turned = _turn_about(end, deg) @ best
+    moved = np.hypot(*(turned(judge._known_b[on]) - p).T)
+    assert np.median(moved) > 25.0 > np.quantile(moved, 0.1)  # a rival by its median
+    assert judge.far_apart(best, turned, 40.0)
+    assert not judge.rival(best, turned)
+    assert judge.rival(best, _turn_about(end, 10 * deg) @ best)
+    assert judge.rival(best, SimilarityTransform(translation=(0.0, 45.0)) @ best)
+
+
 def test_a_nudged_pose_reaches_the_truth_that_refining_does_not():
     """From a pose 26 px off, the refinement (12 px reach) stays off; shifted by 20 px
     towards the truth and refined, the pose is the truth, and it scores higher."""
