@@ -921,7 +921,7 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     own = forward.confidence or 0.0
     if tau is None or forward.transform is None or own >= tau:
         return forward
-    if own < opts.min_confidence and judge.shared(forward.transform) < _WALL_LED_MIN_SHARED - 0.05:
+    if own < opts.min_confidence and judge.shared(forward.transform) < _HOPELESS_SHARED:
         # Declined, and sharing too little for the same merge found from b's side to be
         # taken (most pairs of a fleet, which do not overlap): not sought again.
         return forward
@@ -1026,7 +1026,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
         details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4)}
         # Poses far below that share cannot be accepted: they are not refined (maps
         # that do not overlap at all, most pairs of a fleet, end here at little cost).
-        led = [(t, kind) for t, kind in keypoints + [(h.transform, "walls (wall-led)") for h in walls] if judge.shared(t) >= _WALL_LED_MIN_SHARED - 0.05]
+        led = [(t, kind) for t, kind in keypoints + [(h.transform, "walls (wall-led)") for h in walls] if judge.shared(t) >= _HOPELESS_SHARED]
         earlier = [t for t, _ in candidates]
 
         def judged_led(poses):
@@ -1342,6 +1342,10 @@ _OVERLAP_SEEKING = 0.0625
 _WIDE_HYPOTHESES = 20
 #: Share of the smaller map a pose of the second, wall-led search must overlap.
 _WALL_LED_MIN_SHARED = 0.15
+#: Poses sharing less than this (before refinement, which moves them a little) cannot
+#: reach ``_WALL_LED_MIN_SHARED``: the wall-led search does not refine them, and a
+#: declined pose sharing less is not sought again from b's side.
+_HOPELESS_SHARED = _WALL_LED_MIN_SHARED - 0.05
 #: ... and no clearly different pose may score above this share of its score.
 _WALL_LED_RATIO = 0.8
 #: The wall-led search's pose is also taken, with less wall agreement, when no clearly
