@@ -130,6 +130,37 @@ def test_recorded_overlap_matches_the_geometry():
         assert np.hypot(*(centre_a - vb[0])) < 3.0
 
 
+def test_shared_walls_are_the_walls_both_robots_saw():
+    """Two scanners in a corridor 250 cells wide see its two walls where their discs
+    reach them; the walls they share are the stretches both discs cover, none when the
+    scanners are too far apart. The overlap of their known cells counts the floor too."""
+    world = np.zeros((250, 700), np.float32)
+    world[:4, :] = world[-4:, :] = 1.0
+    world[:, :4] = world[:, -4:] = 1.0
+    grid = OccupancyGrid(world)
+    r = datasets.RANGE_PX
+    reach = math.sqrt(r * r - (125 - 4) ** 2)  # half the stretch of each wall one disc reaches
+    for d in (0.0, 100.0, 250.0):
+        va, vb = [[350 - d / 2, 125.0]], [[350 + d / 2, 125.0]]
+        _, _, _, meta = datasets.robot_views_pair(grid, va, vb, rotation_deg=20.0, scale=1.2, rng=0)
+        expect = 2 * max(0.0, 2 * reach - d)  # the inner face of both walls, one cell deep
+        assert meta["shared_walls"] == pytest.approx(expect, rel=0.1, abs=4), (d, meta["shared_walls"], expect)
+        assert meta["overlap"] > 0.05  # the discs overlap even when no wall is shared
+    assert datasets.shared_walls(np.full((3, 3), np.nan), np.ones((3, 3))) == 0
+
+
+def test_simulated_positives_record_their_shared_walls(small_set):
+    _, cases = small_set
+    for c in cases:
+        if not c.positive:
+            assert "shared_walls" not in c.meta
+            continue
+        n = c.meta["shared_walls"]
+        assert isinstance(n, int) and 0 < n
+        # At most the walls robot a saw (its map before noise is the source's cells).
+        assert n <= int((c.a.data > 0.5).sum()) * 1.2 + 10
+
+
 @pytest.mark.parametrize("scale", [0.7, 1.0, 1.45, 1.9])
 def test_walls_are_where_robot_a_sees_them_at_any_resolution(scale):
     """The truth is the best fit: b's walls, carried into a's frame, lie where a's are,

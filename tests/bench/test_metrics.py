@@ -134,3 +134,29 @@ def test_summaries():
     assert r["false_merge_rate"] == 0.5 and r["false_merges"] == 1
     assert r["median_error_px"] == pytest.approx(2.5)
     assert r["median_time_s"] == pytest.approx(3.5)
+
+
+def _walled(n, success):
+    case = _case()
+    case.meta["shared_walls"] = n
+    return evaluate(case, _result(TRUTH if success else _shifted(50.0)))
+
+
+def test_simulated_positives_are_summed_up_by_the_walls_they_share():
+    """Positive pairs that record their shared walls get a row per group of
+    ``SHARED_WALL_GROUPS``, in its order, under ``by = "shared walls"``; negatives and
+    pairs without the field stay out of it."""
+    from gridmerge.bench.metrics import shared_walls_group
+
+    recs = [_walled(20, False), _walled(49, True), _walled(50, True), _walled(5000, True),
+            evaluate(_case(positive=False), _result(None, success=False)), evaluate(_case(), _result(TRUTH))]
+    assert recs[0].shared_walls == 20 and recs[-1].shared_walls is None
+    assert Record.from_dict(recs[0].to_dict()) == recs[0]
+    rows = [r for r in summarize(recs) if r.get("by") == "shared walls"]
+    assert [r["tier"] for r in rows] == ["under 50", "50-199", "1000 or more"]
+    assert [(r["positives"], r["success"], r["negatives"]) for r in rows] == [(2, 1, 0), (1, 1, 0), (1, 1, 0)]
+    assert [shared_walls_group(n) for n in (0, 49, 50, 199, 200, 999, 1000)] == [
+        "under 50", "under 50", "50-199", "50-199", "200-999", "200-999", "1000 or more"]
+    assert shared_walls_group(None) is None
+    # Without the field (Halmstad, paper): no such rows.
+    assert not [r for r in summarize(recs[4:]) if r.get("by") == "shared walls"]

@@ -8,6 +8,7 @@ import json
 import pytest
 
 from gridmerge.bench import datasets, runner
+from gridmerge.bench.metrics import shared_walls_group
 from gridmerge.bench.plots import PLOTS
 from gridmerge.cli import bench as cli_bench
 from gridmerge.errors import GridMergeError, OutputError
@@ -59,6 +60,10 @@ def test_run_writes_every_file(runs):
         assert config["machine"][key]
     md = (out / "results.md").read_text()
     assert "| simulated | `sift` |" in md and "Table I" in md and "no-such-method" in md and "29.91" in md
+    # The simulated positive (case 0) is also summed up by the walls both robots saw.
+    walls = recs[0]["shared_walls"]
+    assert walls > 0 and recs[1]["shared_walls"] is None
+    assert "## simulated by shared walls" in md and f"| {shared_walls_group(walls)} | `sift` |" in md
 
 
 def test_run_is_reproducible_and_loads_back(runs):

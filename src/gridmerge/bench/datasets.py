@@ -64,6 +64,7 @@ __all__ = [
     "paper",
     "load",
     "measure_overlap",
+    "shared_walls",
     "robot_views_pair",
     "source_map",
     "source_names",
@@ -286,6 +287,23 @@ def measure_overlap(known_a: np.ndarray, known_b: np.ndarray) -> float:
     if min(na, nb) == 0:
         return 0.0
     return float((known_a & known_b).sum()) / min(na, nb)
+
+
+def shared_walls(world_a: np.ndarray, world_b: np.ndarray) -> int:
+    """Cells that two robots' maps of one world, in the world's frame, both hold as walls.
+
+    The structure an alignment can rest on: the overlap of the known cells
+    (:func:`measure_overlap`) counts open floor too, which fixes no pose. ``world_a``
+    and ``world_b`` are occupancy arrays of the world's shape (occupied above 0.5,
+    unknown NaN).
+
+    >>> a = np.full((4, 4), np.nan); b = np.full((4, 4), np.nan)
+    >>> a[0, :] = 1.0; b[0, 2:] = 1.0; b[1, :] = 0.0
+    >>> shared_walls(a, b)
+    2
+    """
+    with np.errstate(invalid="ignore"):
+        return int(((world_a > 0.5) & (world_b > 0.5)).sum())
 
 
 def _similarity(theta: float, scale: float, tx: float = 0.0, ty: float = 0.0) -> np.ndarray:
@@ -525,7 +543,8 @@ def robot_views_pair(
     meta : dict
         ``overlap`` (:func:`measure_overlap` of the two robots' known cells before noise,
         in the world's frame, b's known cells taken at the nearest b cell of each world
-        cell), ``a_offset`` (a's pixel ``(0, 0)`` is world pixel ``a_offset``),
+        cell), ``shared_walls`` (:func:`shared_walls` of what the two robots saw, before
+        noise, in the world's cells), ``a_offset`` (a's pixel ``(0, 0)`` is world pixel ``a_offset``),
         ``b_to_source`` (3x3), ``rotation_deg``, ``scale``, ``noise``.
     """
     gen = np.random.default_rng(rng)
@@ -534,6 +553,7 @@ def robot_views_pair(
     truth = _shift(-off[0], -off[1]) @ M
     meta = {
         "overlap": measure_overlap(ka, kb),
+        "shared_walls": shared_walls(w.seen(views_a), w.seen(views_b)),
         "a_offset": [int(off[0]), int(off[1])],
         "b_to_source": M.tolist(),
         "rotation_deg": float(rotation_deg),
@@ -688,9 +708,10 @@ def simulated(
     -------
     Dataset
         Cases ``"simulated/0000"`` ...; ``meta``: ``tier`` (``"negative"`` for negatives),
-        ``source`` (and ``source_b``), ``overlap``, ``overlap_target``, ``rotation_deg``,
-        ``scale``, ``noise``, ``views`` (a, b), ``direction_deg``, ``a_offset``,
-        ``b_to_source``.
+        ``source`` (and ``source_b``), ``overlap``, ``overlap_target``, ``shared_walls``
+        (positives: :func:`shared_walls` of what the two robots saw, before noise, in the
+        source's cells), ``rotation_deg``, ``scale``, ``noise``, ``views`` (a, b),
+        ``direction_deg``, ``a_offset``, ``b_to_source``.
     """
     n = int(n)
     if n < 0:
@@ -752,6 +773,7 @@ def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes) -> Case
     rot = float(rng.uniform(-180.0, 180.0))
     scale = _log_uniform(rng, *tier.scale)
     a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise)
+    walls = shared_walls(world.seen(va), world.seen(vb))  # the views are cached: no ray is cast again
     world._views.clear()
     truth = _shift(-off[0], -off[1]) @ M
     cid = f"simulated/{k:04d}"
@@ -759,6 +781,7 @@ def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes) -> Case
         "tier": tier.name,
         "source": name,
         "overlap": round(measure_overlap(ka, kb), 6),
+        "shared_walls": walls,
         "overlap_target": round(target, 6),
         "rotation_deg": rot,
         "scale": scale,

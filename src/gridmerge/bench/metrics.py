@@ -49,11 +49,16 @@ __all__ = [
     "halmstad_point_error",
     "evaluate",
     "summarize",
+    "shared_walls_group",
+    "SHARED_WALL_GROUPS",
     "TIMING_FIELDS",
 ]
 
 #: Corner error (a's pixels) within which an alignment is a success.
 SUCCESS_PX = 10.0
+#: The groups of simulated positive pairs by the wall cells both robots saw
+#: (``meta["shared_walls"]``, source cells of 5 cm): ``(label, lower bound)``.
+SHARED_WALL_GROUPS = (("under 50", 0), ("50-199", 50), ("200-999", 200), ("1000 or more", 1000))
 #: Corner error within which a success is precise.
 PRECISE_PX = 2.0
 #: Fields of a record that vary from run to run (everything else is reproducible).
@@ -103,6 +108,8 @@ class Record:
         Cells of both maps.
     overlap, rotation_deg, scale, noise : float or None
         Of the case (from its ``meta``).
+    shared_walls : int or None
+        Simulated positive pairs: the source's cells both robots saw as walls (``meta``).
     source : str or None
     """
 
@@ -139,6 +146,7 @@ class Record:
     b_shape: list = field(default_factory=list)
     cells: int = 0
     overlap: Optional[float] = None
+    shared_walls: Optional[int] = None
     rotation_deg: Optional[float] = None
     scale: Optional[float] = None
     noise: Optional[float] = None
@@ -309,6 +317,7 @@ def evaluate(case, result, *, wall_s: float = 0.0, peak_mb=None, max_rss_mb=None
         b_shape=list(case.b.shape),
         cells=int(case.a.data.size + case.b.data.size),
         overlap=_finite(meta.get("overlap")),
+        shared_walls=None if meta.get("shared_walls") is None else int(meta["shared_walls"]),
         rotation_deg=_finite(meta.get("rotation_deg")),
         scale=_finite(meta.get("scale")),
         noise=_finite(meta.get("noise")),
@@ -369,11 +378,26 @@ def _environment(record: dict) -> Optional[str]:
     return source.split(":", 1)[1]
 
 
+def shared_walls_group(n: Optional[int]) -> Optional[str]:
+    """The label of :data:`SHARED_WALL_GROUPS` that ``n`` shared wall cells fall in
+    (``None`` for ``None``).
+
+    >>> shared_walls_group(53), shared_walls_group(1000)
+    ('50-199', '1000 or more')
+    """
+    if n is None:
+        return None
+    return [label for label, lo in SHARED_WALL_GROUPS if n >= lo][-1]
+
+
 def summarize(records: Iterable) -> list:
     """Summary rows per method and dataset (``tier = "all"``), per method, dataset and
-    tier (when a dataset has more than one tier), and, for the Halmstad data sets, per
-    method, dataset and environment (``tier`` the environment's name, ``by =
-    "environment"``; when a data set has more than one).
+    tier (when a dataset has more than one tier), for the Halmstad data sets per method,
+    dataset and environment (``tier`` the environment's name, ``by = "environment"``;
+    when a data set has more than one), and for positive pairs that record their shared
+    walls (the simulated ones) per method, dataset and :data:`SHARED_WALL_GROUPS` group
+    (``tier`` its label, ``by = "shared walls"``; positives only: the success of pairs
+    that share little structure, which the overlap of known cells does not tell).
 
     Each row: ``method``, ``dataset``, ``tier`` and the counts and rates of
     :func:`_group`: ``success_rate`` (over positive pairs), ``precise_rate``,
@@ -401,4 +425,9 @@ def summarize(records: Iterable) -> list:
                 for e in envs:
                     sub = [r for r in sel if _environment(r) == e]
                     rows.append({"method": m, "dataset": ds, "tier": e, "by": "environment", **_group(sub)})
+            walled = [r for r in sel if r["positive"] and r.get("shared_walls") is not None]
+            for label, _ in SHARED_WALL_GROUPS if walled else ():
+                sub = [r for r in walled if shared_walls_group(r["shared_walls"]) == label]
+                if sub:
+                    rows.append({"method": m, "dataset": ds, "tier": label, "by": "shared walls", **_group(sub)})
     return rows

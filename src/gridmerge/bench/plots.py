@@ -12,6 +12,7 @@ __all__ = ["PLOTS", "make_plots"]
 #: File names of the plots, and what they show.
 PLOTS = {
     "success_vs_overlap.png": "success rate vs overlap (simulated positive pairs)",
+    "success_vs_shared_walls.png": "success rate vs the wall cells both robots saw (simulated positive pairs)",
     "success_vs_rotation.png": "success rate vs rotation (simulated positive pairs)",
     "success_vs_scale.png": "success rate vs scale (simulated positive pairs)",
     "corner_error_cdf.png": "CDF of the corner error (simulated and paper positive pairs; declined = never)",
@@ -74,6 +75,10 @@ def make_plots(records: Sequence[dict], methods: Sequence[str]) -> dict:
     out = {}
     out["success_vs_overlap.png"] = _binned(
         plt, sim, methods, "overlap", [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.0], "overlap fraction", "Success vs overlap"
+    )
+    out["success_vs_shared_walls.png"] = _binned(
+        plt, sim, methods, "shared_walls", [1, 50, 200, 1000, 10000], "wall cells both robots saw (source cells)",
+        "Success vs shared walls", transform=lambda n: min(max(n, 1), 10000), log=True
     )
     out["success_vs_rotation.png"] = _binned(
         plt, sim, methods, "rotation_deg", [0, 30, 60, 90, 120, 150, 180], "|rotation| (deg)", "Success vs rotation", transform=abs

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Optional
 
 from .datasets import TIERS
-from .metrics import PRECISE_PX, SUCCESS_PX
+from .metrics import PRECISE_PX, SHARED_WALL_GROUPS, SUCCESS_PX
 
 __all__ = ["results_markdown", "compare_summaries", "COMPARED"]
 
@@ -103,11 +103,16 @@ def results_markdown(bench) -> str:
     tiered = [r for r in rows if r["tier"] != "all"]
     for ds, by in dict.fromkeys((r["dataset"], r.get("by", "tier")) for r in tiered):
         sub = [r for r in tiered if r["dataset"] == ds and r.get("by", "tier") == by]
-        order = {t: i for i, t in enumerate(list(TIERS) + ["negative"])}
+        order = {t: i for i, t in enumerate(list(TIERS) + ["negative"] + [label for label, _ in SHARED_WALL_GROUPS])}
         sub.sort(key=lambda r: (order.get(r["tier"], 99), r["tier"]))
         out.append(f"\n## {ds} by {by}\n\n")
         out.append(_table([by, "method"] + _HEADER, [_summary_row(r, [r["tier"], f"`{r['method']}`"]) for r in sub]))
-        if ds == "simulated":
+        if ds == "simulated" and by == "shared walls":
+            out.append(
+                "\nShared walls: cells of the source map that both robots saw as walls (before noise); "
+                "positive pairs only. The overlap of known cells counts open floor too, which fixes no pose.\n"
+            )
+        if ds == "simulated" and by == "tier":
             out.append(
                 "\nTiers: "
                 + "; ".join(
