@@ -57,7 +57,7 @@ __all__ = [
 #: Corner error (a's pixels) within which an alignment is a success.
 SUCCESS_PX = 10.0
 #: The groups of simulated positive pairs by the wall cells both robots saw
-#: (``meta["shared_walls"]``, source cells of 5 cm): ``(label, lower bound)``.
+#: (``meta["shared_walls"]``, in cells of the source map): ``(label, lower bound)``.
 SHARED_WALL_GROUPS = (("under 50", 0), ("50-199", 50), ("200-999", 200), ("1000 or more", 1000))
 #: Corner error within which a success is precise.
 PRECISE_PX = 2.0
