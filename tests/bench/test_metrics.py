@@ -160,3 +160,24 @@ def test_simulated_positives_are_summed_up_by_the_walls_they_share():
     assert shared_walls_group(None) is None
     # Without the field (Halmstad, paper): no such rows.
     assert not [r for r in summarize(recs[4:]) if r.get("by") == "shared walls"]
+
+
+def test_swapped_simulated_runs_are_explained_and_plotted_like_simulated_ones():
+    """``simulated-swapped`` records get the simulated tables' notes and the simulated
+    plots (their success against shared walls and overlap)."""
+    from gridmerge.bench.report import results_markdown
+    from gridmerge.bench.runner import BenchRun
+
+    recs = [_walled(20, False), _walled(500, True)]
+    for r in recs:
+        r.dataset = "simulated-swapped"
+    rows = summarize(recs)
+    run = BenchRun(None, {"seed": 0, "methods": ["sift"], "datasets": []}, [r.to_dict() for r in recs], {"rows": rows})
+    md = results_markdown(run)
+    assert "## simulated-swapped by shared walls" in md and "Shared walls: cells of the source map" in md
+    pytest.importorskip("matplotlib")
+    from gridmerge.bench.plots import make_plots
+
+    dicts = [r.to_dict() for r in recs]
+    plotted = make_plots(dicts, ["sift"])["success_vs_shared_walls.png"]
+    assert plotted != make_plots([{**d, "dataset": "halmstad"} for d in dicts], ["sift"])["success_vs_shared_walls.png"]

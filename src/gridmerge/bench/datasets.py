@@ -65,6 +65,7 @@ __all__ = [
     "load",
     "measure_overlap",
     "shared_walls",
+    "unswapped",
     "robot_views_pair",
     "source_map",
     "source_names",
@@ -993,6 +994,15 @@ def halmstad(
     return Dataset("halmstad", len(entries), build, notes)
 
 
+def unswapped(name: str) -> str:
+    """The data set whose cases a data set name's cases are, swapped or not.
+
+    >>> unswapped("simulated-swapped"), unswapped("halmstad-cross")
+    ('simulated', 'halmstad-cross')
+    """
+    return name[: -len(_SWAPPED)] if name.endswith(_SWAPPED) else name
+
+
 def swapped(ds: Dataset) -> Dataset:
     """The cases of ``ds`` with their two maps swapped: b is the reference and a is
     aligned onto it (``truth`` inverted; annotated points, map names and the rotation and
@@ -1087,7 +1097,7 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     """
     base, envs, swap = check_name(name)
     if swap:
-        return swapped(load(name[: -len(_SWAPPED)], seed=seed, n=n, quick=quick, data_dir=data_dir))
+        return swapped(load(unswapped(name), seed=seed, n=n, quick=quick, data_dir=data_dir))
     if base == "simulated":
         return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir)
     if base == "halmstad":
@@ -1114,7 +1124,7 @@ def check_name(name: str) -> tuple[str, Optional[list], bool]:
         Any other name.
     """
     swap = name.endswith(_SWAPPED)
-    base = name[: -len(_SWAPPED)] if swap else name
+    base = unswapped(name)
     envs = None
     if base.startswith("halmstad:"):
         envs = base.split(":", 1)[1].split("+")

@@ -7,6 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
+from .datasets import unswapped
+
 __all__ = ["PLOTS", "make_plots"]
 
 #: File names of the plots, and what they show.
@@ -71,7 +73,7 @@ def _binned(plt, records, methods, key, edges, xlabel, title, transform=None, lo
 def make_plots(records: Sequence[dict], methods: Sequence[str]) -> dict:
     """PNG bytes of every plot of :data:`PLOTS`, by file name."""
     plt = _plt()
-    sim = [r for r in records if r["dataset"] == "simulated" and r["positive"]]
+    sim = [r for r in records if unswapped(r["dataset"]) == "simulated" and r["positive"]]
     out = {}
     out["success_vs_overlap.png"] = _binned(
         plt, sim, methods, "overlap", [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.0], "overlap fraction", "Success vs overlap"
@@ -88,7 +90,7 @@ def make_plots(records: Sequence[dict], methods: Sequence[str]) -> dict:
     )
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    pos = [r for r in records if r["positive"] and r["dataset"] in ("simulated", "paper")]
+    pos = [r for r in records if r["positive"] and unswapped(r["dataset"]) in ("simulated", "paper")]
     for m in methods:
         sel = [r for r in pos if r["method"] == m]
         if not sel:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Optional
 
-from .datasets import TIERS
+from .datasets import TIERS, unswapped
 from .metrics import PRECISE_PX, SHARED_WALL_GROUPS, SUCCESS_PX
 
 __all__ = ["results_markdown", "compare_summaries", "COMPARED"]
@@ -107,12 +107,12 @@ def results_markdown(bench) -> str:
         sub.sort(key=lambda r: (order.get(r["tier"], 99), r["tier"]))
         out.append(f"\n## {ds} by {by}\n\n")
         out.append(_table([by, "method"] + _HEADER, [_summary_row(r, [r["tier"], f"`{r['method']}`"]) for r in sub]))
-        if ds == "simulated" and by == "shared walls":
+        if unswapped(ds) == "simulated" and by == "shared walls":
             out.append(
                 "\nShared walls: cells of the source map that both robots saw as walls (before noise); "
                 "positive pairs only. The overlap of known cells counts open floor too, which fixes no pose.\n"
             )
-        if ds == "simulated" and by == "tier":
+        if unswapped(ds) == "simulated" and by == "tier":
             out.append(
                 "\nTiers: "
                 + "; ".join(
