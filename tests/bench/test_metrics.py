@@ -181,3 +181,29 @@ def test_swapped_simulated_runs_are_explained_and_plotted_like_simulated_ones():
     dicts = [r.to_dict() for r in recs]
     plotted = make_plots(dicts, ["sift"])["success_vs_shared_walls.png"]
     assert plotted != make_plots([{**d, "dataset": "halmstad"} for d in dicts], ["sift"])["success_vs_shared_walls.png"]
+
+
+def test_compare_cases_lists_changed_outcomes_and_moved_errors():
+    from gridmerge.bench import report
+
+    def rec(case, **kw):
+        base = {"method": "m", "case_id": case, "positive": True, "success": True, "wrong": False, "false_merge": False,
+                "declined": False, "confidence": 0.9, "corner_error_px": 1.0, "point_error_px": None}
+        return {**base, **kw}
+
+    before = [rec("s/0"), rec("s/1"), rec("s/2"), rec("h/0", point_error_px=12.0, corner_error_px=300.0),
+              rec("n/0", positive=False, success=False, declined=True, corner_error_px=None), rec("gone")]
+    after = [rec("s/0", corner_error_px=1.5),  # moved by 0.5 px: not listed
+             rec("s/1", success=False, wrong=True, corner_error_px=40.0),
+             rec("s/2", corner_error_px=4.0),  # moved by 3 px
+             rec("h/0", point_error_px=19.0, corner_error_px=300.0),  # Halmstad: the point error moved
+             rec("n/0", positive=False, success=False, false_merge=True, corner_error_px=None), rec("new")]
+    text = report.compare_cases(before, after)
+    assert "5 cases in both runs: 2 changed outcome, 2 kept it with the error moved by more than 1 px" in text
+    changed, moved = text.split("### Changed outcome")[1].split("### Error moved")
+    assert "| `m` | s/1 | right → wrong | 0.90 → 0.90 | 1.0 → 40.0 |" in changed
+    assert "| `m` | n/0 | declined → false merge |" in changed
+    assert moved.index("h/0") < moved.index("s/2") and "s/0" not in moved and "gone" not in text
+    assert [report.outcome(r) for r in after[1:5]] == ["wrong", "right", "right", "false merge"]
+    same = report.compare_cases(before, before)
+    assert "0 changed outcome, 0 kept it" in same and "###" not in same

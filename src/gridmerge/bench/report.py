@@ -7,7 +7,7 @@ from typing import Optional
 from .datasets import TIERS, unswapped
 from .metrics import PRECISE_PX, SHARED_WALL_GROUPS, SUCCESS_PX
 
-__all__ = ["results_markdown", "compare_summaries", "COMPARED"]
+__all__ = ["results_markdown", "compare_summaries", "compare_cases", "outcome", "COMPARED"]
 
 #: Summary fields that :func:`compare_summaries` shows: (key, label, kind).
 COMPARED = (
@@ -189,7 +189,7 @@ def _delta(kind: str, a, b) -> str:
 
 def compare_summaries(run1, run2) -> str:
     """Markdown: one row per method, data set and tier of either run, each compared field
-    as ``run1 → run2 (difference)``."""
+    as ``run1 → run2 (difference)``; then the cases that changed (:func:`compare_cases`)."""
     r1 = {(r["method"], r["dataset"], r["tier"]): r for r in run1.rows}
     r2 = {(r["method"], r["dataset"], r["tier"]): r for r in run2.rows}
     keys = list(dict.fromkeys(list(r1) + list(r2)))
@@ -213,4 +213,57 @@ def compare_summaries(run1, run2) -> str:
     only = [k for k in keys if (k in r1) != (k in r2)]
     if only:
         out.append("\nOnly in one run: " + ", ".join(f"{m} on {d}/{t}" for m, d, t in only) + ".\n")
+    out.append(compare_cases(run1.records, run2.records))
+    return "".join(out)
+
+
+#: How far a case's error must move, with its outcome unchanged, to be listed (pixels).
+MOVED_PX = 1.0
+#: At most this many cases are listed in each table of :func:`compare_cases`.
+LISTED_CASES = 30
+
+
+def outcome(record: dict) -> str:
+    """``"right"``, ``"wrong"`` or ``"declined"`` for a positive pair; ``"false merge"``
+    or ``"declined"`` for a negative one."""
+    if not record["positive"]:
+        return "false merge" if record["false_merge"] else "declined"
+    return "right" if record["success"] else "wrong" if record["wrong"] else "declined"
+
+
+def _error(record: dict):
+    e = record.get("point_error_px")
+    return record.get("corner_error_px") if e is None else e
+
+
+def compare_cases(records1: list, records2: list) -> str:
+    """Markdown: the cases of both runs (same method and case id) whose outcome
+    (:func:`outcome`) changed, and those whose error moved by more than
+    :data:`MOVED_PX` with the same outcome, each with its confidence and error in both
+    runs; a line saying so when the two runs agree case by case."""
+    one = {(r["method"], r["case_id"]): r for r in records1}
+    both = [(one[(r["method"], r["case_id"])], r) for r in records2 if (r["method"], r["case_id"]) in one]
+    changed = [(a, b) for a, b in both if outcome(a) != outcome(b)]
+    moved = []
+    for a, b in both:
+        ea, eb = _error(a), _error(b)
+        if outcome(a) == outcome(b) and ea is not None and eb is not None and abs(eb - ea) > MOVED_PX:
+            moved.append((a, b))
+    moved.sort(key=lambda ab: -abs(_error(ab[1]) - _error(ab[0])))
+    out = [f"\n## Case by case\n\n{len(both)} cases in both runs: {len(changed)} changed outcome, "
+           f"{len(moved)} kept it with the error moved by more than {MOVED_PX:g} px.\n"]
+
+    def cell(v, digits=2):
+        return "–" if v is None else f"{v:.{digits}f}"
+
+    for title, pairs in (("Changed outcome", changed), (f"Error moved by more than {MOVED_PX:g} px", moved)):
+        if not pairs:
+            continue
+        body = [[f"`{a['method']}`", a["case_id"], f"{outcome(a)} → {outcome(b)}",
+                 f"{cell(a.get('confidence'))} → {cell(b.get('confidence'))}", f"{cell(_error(a), 1)} → {cell(_error(b), 1)}"]
+                for a, b in pairs[:LISTED_CASES]]
+        out.append(f"\n### {title}\n\n")
+        out.append(_table(["method", "case", "outcome", "confidence", "error (px)"], body))
+        if len(pairs) > LISTED_CASES:
+            out.append(f"\n... and {len(pairs) - LISTED_CASES} more.\n")
     return "".join(out)

@@ -392,7 +392,9 @@ def run(
 
 
 def compare(run1: Union[BenchRun, str, os.PathLike], run2: Union[BenchRun, str, os.PathLike]) -> str:
-    """A Markdown table of the summary differences between two runs (``run2 - run1``)."""
+    """Markdown: the summary differences between two runs (``run2 - run1``), then the
+    cases whose outcome changed or whose error moved
+    (:func:`~gridmerge.bench.report.compare_summaries`)."""
     r1 = run1 if isinstance(run1, BenchRun) else BenchRun.load(run1)
     r2 = run2 if isinstance(run2, BenchRun) else BenchRun.load(run2)
     return compare_summaries(r1, r2)

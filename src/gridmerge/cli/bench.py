@@ -131,8 +131,9 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     pc = sub.add_parser(
         "compare",
         parents=parents,
-        help="compare the summaries of two runs",
-        description="Print a Markdown table of the summary differences between two results folders (RUN2 - RUN1).",
+        help="compare two runs: their summaries, then case by case",
+        description="Print a Markdown table of the summary differences between two results folders (RUN2 - RUN1), "
+        "then the cases whose outcome changed and those whose error moved by more than 1 px.",
     )
     pc.add_argument("bench_run1", metavar="RUN1", help="results folder of the first run")
     pc.add_argument("bench_run2", metavar="RUN2", help="results folder of the second run")
