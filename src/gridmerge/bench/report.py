@@ -253,14 +253,11 @@ def compare_cases(records1: list, records2: list) -> str:
     out = [f"\n## Case by case\n\n{len(both)} cases in both runs: {len(changed)} changed outcome, "
            f"{len(moved)} kept it with the error moved by more than {MOVED_PX:g} px.\n"]
 
-    def cell(v, digits=2):
-        return "–" if v is None else f"{v:.{digits}f}"
-
     for title, pairs in (("Changed outcome", changed), (f"Error moved by more than {MOVED_PX:g} px", moved)):
         if not pairs:
             continue
         body = [[f"`{a['method']}`", a["case_id"], f"{outcome(a)} → {outcome(b)}",
-                 f"{cell(a.get('confidence'))} → {cell(b.get('confidence'))}", f"{cell(_error(a), 1)} → {cell(_error(b), 1)}"]
+                 f"{_num(a.get('confidence'))} → {_num(b.get('confidence'))}", f"{_num(_error(a), 1)} → {_num(_error(b), 1)}"]
                 for a, b in pairs[:LISTED_CASES]]
         out.append(f"\n### {title}\n\n")
         out.append(_table(["method", "case", "outcome", "confidence", "error (px)"], body))
