@@ -199,11 +199,11 @@ def test_compare_cases_lists_changed_outcomes_and_moved_errors():
              rec("h/0", point_error_px=19.0, corner_error_px=300.0),  # Halmstad: the point error moved
              rec("n/0", positive=False, success=False, false_merge=True, corner_error_px=None), rec("new")]
     text = report.compare_cases(before, after)
-    assert "5 cases in both runs: 2 changed outcome, 2 kept it with the error moved by more than 1 px" in text
+    assert "Cases in both runs: 5; outcome changed: 2; outcome kept, error moved by more than 1 px: 2." in text
     changed, moved = text.split("### Changed outcome")[1].split("### Error moved")
     assert "| `m` | s/1 | right → wrong | 0.90 → 0.90 | 1.0 → 40.0 |" in changed
     assert "| `m` | n/0 | declined → false merge |" in changed
     assert moved.index("h/0") < moved.index("s/2") and "s/0" not in moved and "gone" not in text
     assert [report.outcome(r) for r in after[1:5]] == ["wrong", "right", "right", "false merge"]
     same = report.compare_cases(before, before)
-    assert "0 changed outcome, 0 kept it" in same and "###" not in same
+    assert "outcome changed: 0; outcome kept, error moved by more than 1 px: 0." in same and "###" not in same

@@ -88,11 +88,14 @@ def test_compare(runs):
     assert "100.0 % → 0.0 % (-100.0 pt)" in text
     assert "Only in one run" in text
     # Case by case: the same seed gives the same cases; a changed case is listed.
-    assert "3 cases in both runs: 0 changed outcome, 0 kept it" in text
+    assert "Cases in both runs: 3; outcome changed: 0; outcome kept, error moved by more than 1 px: 0." in text
     recs = [dict(r) for r in r2.records]
     recs[2].update(success=False, declined=True, confidence=0.2)  # the paper's case, now declined
     text = runner.compare(r1, runner.BenchRun(r2.out_dir, r2.config, recs, r2.summary))
-    assert "3 cases in both runs: 1 changed outcome" in text and "| `sift` | paper/table1-seed0 | right → declined |" in text
+    assert "Cases in both runs: 3; outcome changed: 1;" in text and "| `sift` | paper/table1-seed0 | right → declined |" in text
+    # Another seed draws other simulated pairs under the same ids: only the others are compared.
+    text = runner.compare(r1, runner.BenchRun(r2.out_dir, {**r2.config, "seed": 4}, recs, r2.summary))
+    assert "Cases in both runs: 1; outcome changed: 1;" in text and "seeds differ (3 and 4)" in text
 
 
 def test_run_refuses_to_overwrite_results(runs, tmp_path):
