@@ -997,22 +997,19 @@ class Merger:
         if not todo:
             return False
         checked.update(todo)
-        jobs = [self._job(i, j, names, feats, both_sides=True) for i, j in todo]
-        t1 = time.perf_counter()
+        before = {k: results[k].result for k in todo}
+        self._search(names, feats, todo, results, stats, both_sides=True)
         changed = False
-        for (i, j), r in zip(todo, self._run("pairs", _run_pair, jobs)):
-            before = results[(i, j)].result
-            results[(i, j)] = self._store(names, i, j, r, "search")
-            same = r.success == before.success and (r.transform is None or np.array_equal(r.transform.params, before.transform.params))
+        for k in todo:
+            r, old = results[k].result, before[k]
+            same = r.success == old.success and (r.transform is None or np.array_equal(r.transform.params, old.transform.params))
             changed = changed or not same
-        stats.align_s += time.perf_counter() - t1
-        stats.pairs_searched += len(todo)
         return changed
 
-    def _search(self, names, feats, pairs, results, stats) -> None:
+    def _search(self, names, feats, pairs, results, stats, *, both_sides: bool = False) -> None:
         if not pairs:
             return
-        jobs = [self._job(i, j, names, feats) for i, j in pairs]
+        jobs = [self._job(i, j, names, feats, both_sides=both_sides) for i, j in pairs]
         t1 = time.perf_counter()
         for (i, j), r in zip(pairs, self._run("pairs", _run_pair, jobs)):
             results[(i, j)] = self._store(names, i, j, r, "search")

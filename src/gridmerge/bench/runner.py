@@ -142,7 +142,7 @@ def _resolve_datasets(datasets, *, seed, n, quick, data_dir) -> tuple[list, list
             if name == "halmstad" and item == "all" and not _datasets.halmstad_environments(data_dir):
                 notes.append(f"halmstad skipped: no annotated maps in {_datasets.resolve_data_dir(data_dir) / 'halmstad'}")
                 continue
-            out.append(_datasets.load(name, seed=seed, n=n if name.startswith("simulated") else None, quick=quick, data_dir=data_dir))
+            out.append(_datasets.load(name, seed=seed, n=n if _datasets.unswapped(name) == "simulated" else None, quick=quick, data_dir=data_dir))
     return out, notes
 
 
