@@ -246,3 +246,64 @@ def test_swapped_dataset_names():
     for bad in ("all-swapped", "-swapped", "nothing-swapped"):
         with pytest.raises(argparse.ArgumentTypeError):
             cli_bench._dataset_name(bad)
+
+
+# ------------------------------------------------------------- options
+def test_options_reach_gridmerge_methods_only(monkeypatch):
+    """``options`` change our methods' AlignOptions; a baseline keeps its own rule; a
+    blueprint case still gets any scale."""
+    import importlib
+
+    from gridmerge import samples
+
+    align_module = importlib.import_module("gridmerge.align")
+    seen = []
+    real = align_module.align
+    monkeypatch.setattr(align_module, "align", lambda *args, **kw: seen.append(kw) or real(*args, **kw))
+    a, b, truth = samples.robot_pair(0)
+    case = datasets.Case("t/x", "t", a, b, truth, True, {"tier": "t"})
+    blueprint = datasets.Case("t/y", "t", a, b, truth, True, {"tier": "t", "resolutions_known": False})
+    options = {"min_confidence": 0.9, "one_sided_confidence": 0.95}
+    runner._align_measured(case, "hybrid", 0, False, options)
+    runner._align_measured(case, "orb", 0, False, options)
+    runner._align_measured(blueprint, "hybrid", 0, False, options)
+    assert seen[0]["min_confidence"] == 0.9 and seen[0]["one_sided_confidence"] == 0.95
+    assert "min_confidence" not in seen[1] and "one_sided_confidence" not in seen[1]
+    assert seen[2]["min_confidence"] == 0.9 and seen[2]["scale_prior"] == 0.0
+
+
+def test_a_run_with_options_records_and_applies_them(runs, tmp_path):
+    _, default, _ = runs  # sift on the tiny cases, seed 3, default options
+    strict = runner.run("sift", _tiny(), seed=3, out_dir=tmp_path / "strict", plots=False, memory=False,
+                        options={"min_confidence": 0.999})
+    assert strict.config["options"] == {"min_confidence": 0.999}
+    assert default.config["options"] == {}
+    assert "`min_confidence` = 0.999" in (tmp_path / "strict" / "results.md").read_text()
+    # The same candidates, judged against the higher threshold.
+    for d, s in zip(default.records, strict.records):
+        assert d["case_id"] == s["case_id"] and d["confidence"] == s["confidence"]
+        assert s["aligned"] == (d["aligned"] and d["confidence"] >= 0.999)
+    assert any(d["aligned"] and not s["aligned"] for d, s in zip(default.records, strict.records))
+    text = runner.compare(default, strict)
+    assert "run 1 defaults; run 2 `min_confidence` = 0.999" in text
+    assert "Options of" not in runner.compare(default, default)
+
+
+def test_options_must_be_align_options(tmp_path):
+    with pytest.raises(GridMergeError, match="min_confidance"):
+        runner.run("sift", [datasets.paper()], out_dir=tmp_path / "x", options={"min_confidance": 0.4})
+    assert not (tmp_path / "x").exists()
+
+
+def test_cli_decline_thresholds(tmp_path):
+    p = _parser()
+    args = p.parse_args(["bench", "--min-confidence", "0.4", "run", "--one-sided-confidence", "0.7"])
+    assert (args.bench_min_confidence, args.bench_one_sided_confidence) == (0.4, 0.7)
+    for bad in ("1.2", "-1", "x"):
+        with pytest.raises(SystemExit):
+            p.parse_args(["bench", "--min-confidence", bad])
+    out = tmp_path / "r"
+    args = p.parse_args(["bench", "--dataset", "paper", "--quick", "--methods", "paper", "--out", str(out), "--no-plots",
+                         "--min-confidence", "0.7"])
+    assert cli_bench.run(args) == 0
+    assert json.loads((out / "config.json").read_text())["options"] == {"min_confidence": 0.7}

@@ -315,6 +315,14 @@ BAD_INPUT = [
     ("sample-exists", _nothing, ["sample", "."], "--force"),
     ("sample-folder-missing", _nothing, ["sample", "nowhere"], "nowhere"),
     ("sample-unknown-kind", _mkdir("empty"), ["sample", "empty", "--kind", "moon"], "moon"),
+    ("min-confidence-above-one", _nothing, ["align", "a.yaml", "b.yaml", "--min-confidence", "1.5"], "0 to 1"),
+    ("min-confidence-negative", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--min-confidence", "-0.1"], "0 to 1"),
+    ("one-sided-not-a-number", _nothing, ["align", "a.yaml", "b.yaml", "--one-sided-confidence", "high"], "high"),
+    ("min-confidence-nan", _nothing, ["align", "a.yaml", "b.yaml", "--min-confidence", "nan"], "0 to 1"),
+    # The baselines decline by their authors' rules: a threshold would be silently ignored.
+    ("threshold-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--min-confidence", "0.4"], "own rule"),
+    ("merge-threshold-with-baseline", _nothing,
+     ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--method", "hough", "--one-sided-confidence", "0.6"], "own rule"),
 ]
 
 OTHER_FUSIONS = [f for f in FUSION_RULES if f != "average"]
@@ -355,6 +363,11 @@ def runs(sample_maps, tmp_path_factory):
     runner.add("align-text", ["align", "a.yaml", "b.yaml"], sample_maps.folder)
     runner.add("align-negative", ["align", "neg_a.yaml", "neg_b.yaml", "--json"], sample_maps.folder)
     runner.add("align-paper", ["align", "a.yaml", "b.yaml", "--json", "--method", "paper"], sample_maps.folder)
+    runner.add("align-sift", ["align", "a.yaml", "b.yaml", "--json", "--method", "sift"], sample_maps.folder)
+    runner.add("align-sift-strict", ["align", "a.yaml", "b.yaml", "--json", "--method", "sift", "--min-confidence", "1"], sample_maps.folder)
+    runner.add("merge-sift-strict", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--method", "sift", "--min-confidence", "1"], folder("merge-sift-strict"))
+    runner.add("align-negative-any-confidence", ["align", "neg_a.yaml", "neg_b.yaml", "--json", "--min-confidence", "0", "--one-sided-confidence", "0"],
+               sample_maps.folder)
     f = folder("merge-unknown", "a")
     save_map(OccupancyGrid(np.full((120, 160), np.nan)), f / "unknown.yaml")
     runner.add("merge-unknown", ["merge", "a.yaml", "unknown.yaml", "-o", "out.yaml", "--json"], f)
@@ -480,6 +493,32 @@ def test_trust_resolution_pulls_the_metric_scale_to_one(runs, sample_maps):
     a, b, truth = sample_maps.a, sample_maps.b, sample_maps.truth
     assert metric_error(default, a, b, truth) <= metric_error(cells_only, a, b, truth) + 1e-3
     assert metric_error(trusted, a, b, truth) <= metric_error(default, a, b, truth) + 1e-3
+
+
+def test_min_confidence_moves_the_decline_threshold(runs):
+    # sift aligns the sample pair at a confidence just under 1: asked for 1, the same
+    # candidate is declined, with the threshold named; merge then writes nothing.
+    default = parse_json(runs.get("align-sift").result)
+    assert default["success"] and 0.5 <= default["confidence"] < 1.0
+    proc = runs.get("align-sift-strict").result
+    assert proc.returncode == 1, describe(proc)
+    strict = parse_json(proc)
+    assert not strict["success"] and strict["transform"] is None
+    assert strict["confidence"] == pytest.approx(default["confidence"])
+    assert strict["candidate"] == default["candidate"]
+    assert "below 1" in strict["message"]
+    merged = runs.get("merge-sift-strict")
+    assert merged.result.returncode == 1, describe(merged.result)
+    assert not (merged.cwd / "out.yaml").exists() and not (merged.cwd / "out.pgm").exists()
+
+
+def test_no_threshold_merges_maps_of_two_places(runs):
+    # The thresholds are not the only guard: maps of two different buildings are still
+    # declined with every confidence accepted (their walls do not agree).
+    proc = runs.get("align-negative-any-confidence").result
+    assert proc.returncode == 1, describe(proc)
+    d = parse_json(proc)
+    assert not d["success"] and "walls agree" in d["message"]
 
 
 def test_trust_resolution_and_any_scale_together_are_one_usage_error(runs):

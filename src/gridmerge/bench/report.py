@@ -7,7 +7,7 @@ from typing import Optional
 from .datasets import TIERS, unswapped
 from .metrics import PRECISE_PX, SHARED_WALL_GROUPS, SUCCESS_PX
 
-__all__ = ["results_markdown", "compare_summaries", "compare_cases", "outcome", "COMPARED"]
+__all__ = ["results_markdown", "compare_summaries", "compare_cases", "outcome", "options_text", "COMPARED"]
 
 #: Summary fields that :func:`compare_summaries` shows: (key, label, kind).
 COMPARED = (
@@ -72,6 +72,11 @@ _HEADER = [
 ]
 
 
+def options_text(options: dict) -> str:
+    """``min_confidence = 0.4, ...`` (``defaults`` when empty): the AlignOptions a run changed."""
+    return ", ".join(f"`{k}` = {v}" for k, v in sorted(options.items())) or "defaults"
+
+
 def results_markdown(bench) -> str:
     """``results.md`` of a :class:`~gridmerge.bench.runner.BenchRun`."""
     c = bench.config
@@ -87,6 +92,8 @@ def results_markdown(bench) -> str:
         f"numpy {mach.get('numpy')}, OpenCV {mach.get('opencv')}; gridmerge {mach.get('gridmerge')}. "
         f"Run {c.get('started')}, {c.get('duration_s')} s.\n"
     )
+    if c.get("options"):
+        out.append(f"\nOptions changed for gridmerge's own methods (the baselines keep their rules): {options_text(c['options'])}.\n")
     desc = c.get("method_descriptions") or {}
     if any(desc.values()):
         out.append("\nMethods:\n\n" + "".join(f"* `{m}`: {d}\n" for m, d in desc.items()))
@@ -197,6 +204,9 @@ def compare_summaries(run1, run2) -> str:
     name2 = str(run2.out_dir) if run2.out_dir is not None else "run 2"
     out = [f"# Benchmark comparison\n\nrun 1: {name1} (seed {run1.config.get('seed')}); run 2: {name2} (seed {run2.config.get('seed')}). "
            "Cells: run 1 → run 2 (difference).\n\n"]
+    opts = run1.config.get("options") or {}, run2.config.get("options") or {}
+    if opts[0] != opts[1]:
+        out.append(f"Options of gridmerge's own methods: run 1 {options_text(opts[0])}; run 2 {options_text(opts[1])}.\n\n")
     header = ["data set", "tier", "method", "pairs"] + [label for _, label, _ in COMPARED]
     body = []
     for k in keys:

@@ -29,7 +29,7 @@ import platform
 import sys
 import time
 import tracemalloc
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Callable, Optional, Sequence, Union
 
@@ -161,9 +161,10 @@ def _max_rss_mb() -> Optional[float]:
     return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
 
 
-def _align_measured(case, method: str, seed: int, memory: bool):
-    """``(result or None, wall_s, peak_mb, error)`` of one alignment."""
-    from ..align import ANY_SCALE, align
+def _align_measured(case, method: str, seed: int, memory: bool, options=None):
+    """``(result or None, wall_s, peak_mb, error)`` of one alignment; ``options``
+    (AlignOptions overrides) apply to gridmerge's own methods only."""
+    from ..align import ANY_SCALE, METHODS, align
 
     cv2.setRNGSeed(int(seed))
     started_here = False
@@ -180,7 +181,9 @@ def _align_measured(case, method: str, seed: int, memory: bool):
     t0 = time.perf_counter()
     try:
         # A map whose resolution is unknown (a blueprint) is aligned as a user would: at any scale.
-        overrides = {} if case.meta.get("resolutions_known", True) else ANY_SCALE
+        overrides = dict(options or {}) if METHODS[method].verified else {}
+        if not case.meta.get("resolutions_known", True):
+            overrides.update(ANY_SCALE)
         result = align(case.a, case.b, method=method, rng=seed, **overrides)
     except (KeyboardInterrupt, SystemExit):
         raise
@@ -194,6 +197,18 @@ def _align_measured(case, method: str, seed: int, memory: bool):
             if started_here:
                 tracemalloc.stop()
     return result, wall, peak, error
+
+
+def _check_options(options: Optional[dict]) -> dict:
+    """``options`` as a plain dict, every key an :class:`~gridmerge.align.AlignOptions` field."""
+    from ..align import AlignOptions
+
+    options = dict(options or {})
+    known = {f.name for f in fields(AlignOptions)}
+    unknown = sorted(k for k in options if k not in known)
+    if unknown:
+        raise GridMergeError(f"not AlignOptions fields: {', '.join(unknown)}")
+    return options
 
 
 def _machine() -> dict:
@@ -264,6 +279,7 @@ def run(
     plots: bool = True,
     memory: bool = True,
     overwrite: bool = False,
+    options: Optional[dict] = None,
 ) -> BenchRun:
     """Run every method on every case and write the results folder.
 
@@ -298,6 +314,11 @@ def run(
         Measure the peak memory of each call with tracemalloc (slows Python code a little).
     overwrite : bool
         Replace the results in an existing folder.
+    options : dict, optional
+        :class:`~gridmerge.align.AlignOptions` fields to change for gridmerge's own
+        methods (``Method.verified``), e.g. ``{"min_confidence": 0.4}`` to measure another
+        decline threshold; the baselines keep their authors' rules. Recorded in
+        ``config.json`` and named in ``results.md``.
 
     Returns
     -------
@@ -310,6 +331,7 @@ def run(
     OutputError
         The folder holds results and ``overwrite`` is false, or cannot be written.
     """
+    options = _check_options(options)
     registered, skipped = resolve_methods(methods)
     warnings = [f"method {m!r} is not registered (gridmerge.align.METHODS): skipped" for m in skipped]
     if not registered:
@@ -342,6 +364,7 @@ def run(
         "quick": bool(quick),
         "data_dir": None if _datasets.resolve_data_dir(data_dir) is None else str(_datasets.resolve_data_dir(data_dir)),
         "memory": bool(memory),
+        "options": options,
         "machine": _machine(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(started)),
     }
@@ -355,7 +378,7 @@ def run(
                 for m in registered:
                     if progress is not None:
                         progress(done, total, f"{case.id} {m}")
-                    result, wall, peak, error = _align_measured(case, m, seed, memory)
+                    result, wall, peak, error = _align_measured(case, m, seed, memory, options)
                     rec = evaluate(case, result, wall_s=wall, peak_mb=peak, max_rss_mb=_max_rss_mb(), error=error)
                     rec.method = m
                     d = rec.to_dict()

@@ -29,6 +29,7 @@ from ..io.map_server import YAML_SUFFIXES, yaml_image_path
 from ..limits import DEFAULT_LIMITS, Limits, extractor_for
 from ..merge import PAIR_STRATEGIES, SCALE_CHECKS, merge
 from ..samples import SAMPLE_KINDS, sample_outputs, write_sample
+from . import _decline
 from . import bench as bench_cli
 
 __all__ = ["main", "EXIT_OK", "EXIT_DECLINED", "EXIT_BAD_INPUT"]
@@ -101,6 +102,23 @@ def _add_limits(parser: argparse.ArgumentParser) -> None:
         )
 
 
+def _add_decline(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("decline thresholds (methods hybrid, sift, ransac, paper)")
+    for flag, (name, _) in _decline.FLAGS.items():
+        group.add_argument(flag, dest=name, type=_decline.confidence, default=None, metavar="C", help=_decline.help_text(name))
+
+
+def _decline_options(args) -> dict:
+    """AlignOptions of --min-confidence and --one-sided-confidence; a usage error with a
+    method that declines by its own rule."""
+    given = _decline.overrides({name: getattr(args, name, None) for name, _ in _decline.FLAGS.values()})
+    if given and _decline.baselines_among([args.method]):
+        flags = [f for f, (name, _) in _decline.FLAGS.items() if name in given]
+        raise _UsageError(f"{' and '.join(flags)}: the {args.method} baseline declines by its own rule; "
+                          f"use {'them' if len(flags) > 1 else 'it'} with a gridmerge method ({', '.join(_decline.verified_methods())})")
+    return given
+
+
 def _limits(args) -> Limits:
     return DEFAULT_LIMITS.replace(**{f.name: getattr(args, f.name, None) for f in fields(Limits)})
 
@@ -139,6 +157,7 @@ def _parser() -> argparse.ArgumentParser:
         "(AlignOptions.max_scale_disagreement = None, scale_prior = 0)",
     )
     common.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    _add_decline(common)
     _add_limits(common)
 
     p = _Parser(prog="gridmerge", description="Merge occupancy grid maps of several robots.")
@@ -275,11 +294,12 @@ def _scale_options(args) -> dict:
 
 
 def _cmd_align(args) -> int:
+    decline = _decline_options(args)
     limits = _limits(args)
     a, b = _load_all([args.a, args.b], args.image_resolution, limits)
     extractor = extractor_for(args.method, limits)
     r = align(a, b, method=args.method, rng=args.seed, max_keypoints=limits.max_keypoints, extractor=extractor,
-              **_scale_options(args))
+              **_scale_options(args), **decline)
     if args.json:
         _print_json(r.to_dict())
         return EXIT_OK if r.success else EXIT_DECLINED
@@ -347,6 +367,7 @@ def _cmd_merge(args) -> int:
     out = Path(args.output)
     if out.suffix.lower() not in YAML_SUFFIXES:
         raise _UsageError(f"the output must be a map_server .yaml file, got {out}")
+    decline = _decline_options(args)
     if args.resolution is not None and not (math.isfinite(args.resolution) and args.resolution > 0):
         raise _UsageError(f"--resolution must be a number > 0, got {args.resolution}")
     limits = _limits(args)
@@ -392,7 +413,7 @@ def _cmd_merge(args) -> int:
         result = merge(
             maps, method=args.method, fusion=args.fusion, rng=args.seed, limits=limits, names=names,
             reference=reference, resolution=args.resolution, pairs=args.pairs, scale_check=args.scale_check,
-            executor=executor, progress=progress, **_scale_options(args),
+            executor=executor, progress=progress, **_scale_options(args), **decline,
         )
     if result.success:
         if args.out_bag:

@@ -1,0 +1,65 @@
+"""The decline thresholds on the command line: ``--min-confidence`` and
+``--one-sided-confidence``, shared by ``align``, ``merge`` and ``bench``.
+
+They set :class:`gridmerge.align.AlignOptions` fields of gridmerge's own methods (those
+whose success the verification decides, :attr:`gridmerge.align.Method.verified`). The
+baselines decline by their authors' rules, so asking for a threshold with one of them is
+a usage error rather than a silent no-op. docs/benchmarks.md ("The decline threshold")
+shows what lower thresholds merge, and what they merge wrongly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+__all__ = ["FLAGS", "confidence", "help_text", "overrides", "baselines_among", "verified_methods"]
+
+#: flag -> (AlignOptions field, default shown in the help).
+FLAGS = {
+    "--min-confidence": ("min_confidence", 0.5),
+    "--one-sided-confidence": ("one_sided_confidence", 0.8),
+}
+
+_HELP = {
+    "min_confidence": "decline an alignment whose confidence is below C, 0 to 1 (default {d}); lower merges more "
+    "pairs and risks wrong merges: docs/benchmarks.md, 'The decline threshold'",
+    "one_sided_confidence": "a pose below C is searched again from the other map's side, and declined below C if "
+    "that search does not find it too, 0 to 1 (default {d}; maps of different places fit by chance from one side)",
+}
+
+
+def confidence(text: str) -> float:
+    """argparse type: a number from 0 to 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise argparse.ArgumentTypeError(f"must be a number from 0 to 1, got {text!r}")
+    return value
+
+
+def help_text(field: str) -> str:
+    default = next(d for f, d in FLAGS.values() if f == field)
+    return _HELP[field].format(d=default)
+
+
+def overrides(values: dict) -> dict:
+    """``{AlignOptions field: value}`` of the thresholds given (``values``: field -> value
+    or None when the flag was absent)."""
+    return {f: v for f, v in values.items() if v is not None}
+
+
+def baselines_among(methods) -> list:
+    """The names among ``methods`` that decide by their own rule (not ``Method.verified``)."""
+    from ..align import METHODS
+
+    return [m for m in methods if m in METHODS and not METHODS[m].verified]
+
+
+def verified_methods() -> list:
+    """The registered methods whose success gridmerge's verification decides."""
+    from ..align import METHODS
+
+    return [m for m, spec in METHODS.items() if spec.verified]
