@@ -86,7 +86,8 @@ def test_compare(runs):
     changed = runner.BenchRun(r2.out_dir, r2.config, r2.records, {**r2.summary, "rows": [{**row, "success_rate": 0.0}]})
     text = runner.compare(r1, changed)
     assert "100.0 % → 0.0 % (-100.0 pt)" in text
-    assert "Only in one run" in text
+    # Rows of one run only are named by method and data set (not tier by tier).
+    assert "\nOnly in run 1: `sift` on simulated.\n" in text and "Only in run 2" not in text
     # Case by case: the same seed gives the same cases; a changed case is listed.
     assert "Cases in both runs: 3; outcome changed: 0; outcome kept, error moved by more than 1 px: 0." in text
     recs = [dict(r) for r in r2.records]

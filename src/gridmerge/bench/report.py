@@ -220,9 +220,10 @@ def compare_summaries(run1, run2) -> str:
             cells.append(f"{_fmt(kind, va)} → {_fmt(kind, vb)}" + (f" ({d})" if d else ""))
         body.append([k[1], k[2], f"`{k[0]}`", pairs] + cells)
     out.append(_table(header, body))
-    only = [k for k in keys if (k in r1) != (k in r2)]
-    if only:
-        out.append("\nOnly in one run: " + ", ".join(f"{m} on {d}/{t}" for m, d, t in only) + ".\n")
+    for label, mine, other in (("run 1", r1, r2), ("run 2", r2, r1)):
+        only = [k for k in mine if k not in other]
+        if only:
+            out.append(f"\nOnly in {label}: {_methods_on(only)}.\n")
     seeds = run1.config.get("seed"), run2.config.get("seed")
     if seeds[0] == seeds[1]:
         out.append(compare_cases(run1.records, run2.records))
@@ -234,6 +235,20 @@ def compare_summaries(run1, run2) -> str:
         out.append(compare_cases(fixed(run1.records), fixed(run2.records)))
         out.append(f"\nThe runs' seeds differ ({seeds[0]} and {seeds[1]}): simulated cases are not compared case by case.\n")
     return "".join(out)
+
+
+def _methods_on(keys) -> str:
+    """```a`, `b` on simulated, halmstad; `c` on paper``: the methods of summary rows
+    ``(method, dataset, tier)``, those with the same data sets together (tiers left out)."""
+    sets: dict = {}
+    for m, d, _ in keys:
+        sets.setdefault(m, [])
+        if d not in sets[m]:
+            sets[m].append(d)
+    groups: dict = {}
+    for m, ds in sets.items():
+        groups.setdefault(tuple(ds), []).append(m)
+    return "; ".join(", ".join(f"`{m}`" for m in ms) + " on " + ", ".join(ds) for ds, ms in groups.items())
 
 
 #: How far a case's error must move, with its outcome unchanged, to be listed (pixels).
