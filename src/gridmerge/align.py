@@ -132,7 +132,8 @@ class AlignOptions:
     min_overlap_cells : int
         Decline when the maps share fewer known cells.
     min_confidence : float
-        Decline below this confidence.
+        Decline below this confidence (CLI ``--min-confidence``; docs/benchmarks.md, "The
+        decline threshold", measures what lower values merge, rightly and wrongly).
     max_keypoints : int
         Strongest keypoints kept per map (bounds time and memory).
     feature_pixels : int
@@ -184,7 +185,8 @@ class AlignOptions:
         found from both sides; two Halmstad ones found from one side only, at 0.57 and
         0.67, are declined (docs/benchmarks.md, ninth session). Pairs declined anyway
         whose best pose shares under 10 % of the smaller map are not sought again.
-        ``None`` searches from a's side only: pairs below this take half the time.
+        ``None`` searches from a's side only: pairs below this take half the time. CLI
+        ``--one-sided-confidence``.
         :func:`gridmerge.merge` with three maps or more searches its pairs from one side
         and, after placing the maps, searches from both sides the alignments that lie on
         no loop of the map graph (a loop checks the others).
