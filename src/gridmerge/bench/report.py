@@ -73,7 +73,7 @@ _HEADER = [
 
 
 def options_text(options: dict) -> str:
-    """``min_confidence = 0.4, ...`` (``defaults`` when empty): the AlignOptions a run changed."""
+    """The AlignOptions a run changed, as Markdown (```min_confidence` = 0.4``), or ``defaults``."""
     return ", ".join(f"`{k}` = {v}" for k, v in sorted(options.items())) or "defaults"
 
 

@@ -15,10 +15,10 @@ import math
 
 __all__ = ["FLAGS", "confidence", "help_text", "overrides", "baselines_among", "verified_methods"]
 
-#: flag -> (AlignOptions field, default shown in the help).
+#: flag -> AlignOptions field.
 FLAGS = {
-    "--min-confidence": ("min_confidence", 0.5),
-    "--one-sided-confidence": ("one_sided_confidence", 0.8),
+    "--min-confidence": "min_confidence",
+    "--one-sided-confidence": "one_sided_confidence",
 }
 
 _HELP = {
@@ -41,8 +41,10 @@ def confidence(text: str) -> float:
 
 
 def help_text(field: str) -> str:
-    default = next(d for f, d in FLAGS.values() if f == field)
-    return _HELP[field].format(d=default)
+    """The flag's help, with AlignOptions' default."""
+    from ..align import AlignOptions
+
+    return _HELP[field].format(d=getattr(AlignOptions(), field))
 
 
 def overrides(values: dict) -> dict:

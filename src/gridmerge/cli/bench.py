@@ -96,7 +96,7 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
     add("--progress", "bench_progress", False, action="store_true", help="show a progress bar on stderr even when it is not a terminal")
     add("--force", "bench_force", False, action="store_true", help="replace the results in an existing folder")
     add("--no-plots", "bench_plots", True, action="store_false", help="do not draw the PNG plots")
-    for flag, (name, _) in _decline.FLAGS.items():
+    for flag, name in _decline.FLAGS.items():
         add(flag, "bench_" + name, None, type=_decline.confidence, metavar="C",
             help=_decline.help_text(name) + "; gridmerge's own methods only, the baselines keep their rules")
     return aliases
@@ -204,7 +204,7 @@ def _cmd_run(args) -> int:
         ("bench_datasets", None), ("bench_methods", None), ("bench_n", None), ("bench_seed", 0),
         ("bench_quick", False), ("bench_out", None), ("bench_data", None), ("bench_progress", False),
         ("bench_force", False), ("bench_plots", True),
-        *(("bench_" + name, None) for name, _ in _decline.FLAGS.values()),
+        *(("bench_" + name, None) for name in _decline.FLAGS.values()),
     ):
         setattr(args, dest, _value(args, dest, default))
 
@@ -230,7 +230,7 @@ def _cmd_run(args) -> int:
         data_dir=args.bench_data,
         plots=args.bench_plots,
         overwrite=args.bench_force,
-        options=_decline.overrides({name: getattr(args, "bench_" + name) for name, _ in _decline.FLAGS.values()}),
+        options=_decline.overrides({name: getattr(args, "bench_" + name) for name in _decline.FLAGS.values()}),
     )
     for w in bench.warnings:
         print(f"gridmerge: warning: {w}", file=sys.stderr)
