@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["FLAGS", "confidence", "help_text", "overrides", "baselines_among", "verified_methods"]
+__all__ = ["FLAGS", "confidence", "help_text", "overrides"]
 
 #: flag -> AlignOptions field.
 FLAGS = {
@@ -52,16 +52,3 @@ def overrides(values: dict) -> dict:
     or None when the flag was absent)."""
     return {f: v for f, v in values.items() if v is not None}
 
-
-def baselines_among(methods) -> list:
-    """The names among ``methods`` that decide by their own rule (not ``Method.verified``)."""
-    from ..align import METHODS
-
-    return [m for m in methods if m in METHODS and not METHODS[m].verified]
-
-
-def verified_methods() -> list:
-    """The registered methods whose success gridmerge's verification decides."""
-    from ..align import METHODS
-
-    return [m for m, spec in METHODS.items() if spec.verified]

@@ -102,8 +102,13 @@ def _add_limits(parser: argparse.ArgumentParser) -> None:
         )
 
 
+def _verified_methods() -> str:
+    """The methods whose success gridmerge's verification decides (the decline thresholds'), comma-separated."""
+    return ", ".join(m for m, spec in METHODS.items() if spec.verified)
+
+
 def _add_decline(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("decline thresholds (methods hybrid, sift, ransac, paper)")
+    group = parser.add_argument_group(f"decline thresholds (methods {_verified_methods()})")
     for flag, name in _decline.FLAGS.items():
         group.add_argument(flag, dest=name, type=_decline.confidence, default=None, metavar="C", help=_decline.help_text(name))
 
@@ -112,10 +117,10 @@ def _decline_options(args) -> dict:
     """AlignOptions of --min-confidence and --one-sided-confidence; a usage error with a
     method that declines by its own rule."""
     given = _decline.overrides({name: getattr(args, name, None) for name in _decline.FLAGS.values()})
-    if given and _decline.baselines_among([args.method]):
+    if given and not METHODS[args.method].verified:
         flags = [f for f, name in _decline.FLAGS.items() if name in given]
         raise _UsageError(f"{' and '.join(flags)}: the {args.method} baseline declines by its own rule; "
-                          f"use {'them' if len(flags) > 1 else 'it'} with a gridmerge method ({', '.join(_decline.verified_methods())})")
+                          f"use {'them' if len(flags) > 1 else 'it'} with a gridmerge method ({_verified_methods()})")
     return given
 
 
