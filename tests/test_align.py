@@ -1,6 +1,7 @@
 import importlib
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -200,6 +201,60 @@ def test_keypoints_first_skips_the_walls_only_when_settled():
     na, nb = samples.negative_pair(0)
     r = align(na, nb, rng=0)
     assert not r.success and "walls" not in r.details
+
+
+def test_the_second_look_is_taken_only_when_the_keypoints_do_not_settle(monkeypatch):
+    from gridmerge.align import _SecondLook
+
+    looks = []
+    features = _SecondLook.features
+    monkeypatch.setattr(_SecondLook, "features", lambda self: looks.append(self) or features(self))
+    # Settled by the keypoints: no second look, nothing extracted.
+    a, b, _ = samples.table1_pair(0)
+    r = align(a, b, rng=0)
+    assert r.success and "walls" in r.details and "second_look" not in r.details and not looks
+    # Maps of two places are never settled: the blurred keypoints add their hypotheses,
+    # the pair is still declined, and 0 turns the second look off.
+    na, nb = samples.negative_pair(0)
+    r = align(na, nb, rng=0)
+    assert not r.success and r.details["second_look"]["hypotheses"] >= 0 and looks
+    looks.clear()
+    off = align(na, nb, rng=0, second_look=0)
+    assert not off.success and "second_look" not in off.details and not looks
+
+
+def test_the_second_look_finds_the_keypoints_once_for_both_sides(monkeypatch):
+    from gridmerge.align import AlignOptions, _SecondLook
+
+    align_module = importlib.import_module("gridmerge.align")
+    a, b = samples.negative_pair(0)
+    calls = []
+    extract = align_module._extract_both
+    monkeypatch.setattr(align_module, "_extract_both", lambda *args: calls.append(args) or extract(*args))
+    look = _SecondLook(a, b, AlignOptions())
+    fa, fb = look.features()
+    ra, rb = look.swapped().features()
+    assert (ra, rb) == (fb, fa) and ra is fb and len(calls) == 1
+    assert len(fa) and len(fb)
+    # They are keypoints of the blurred maps: not those the search starts with.
+    plain = align_module.default_extractor()(a)
+    assert len(plain) != len(fa) or not np.array_equal(plain.xy, fa.xy)
+
+
+def test_the_second_look_adds_only_scales_the_resolutions_allow():
+    from gridmerge.align import AlignOptions, _keypoint_hypotheses, _SecondLook, _scale_disagreement, _second_look_hypotheses
+
+    a, b, truth = samples.table1_pair(0)  # b is a's map at 0.95 of its scale, same resolution
+    opts = AlignOptions()
+    fa, fb = _SecondLook(a, b, opts).features()
+    every = _keypoint_hypotheses(fa, fb, opts)[0]
+    kept = _second_look_hypotheses(a, b, fa, fb, opts)
+    assert kept and all(_scale_disagreement(h.transform, a, b) <= 0.15 for h in kept)
+    assert any(corner_error(h.transform, truth, b.shape) < 2.0 for h in kept)
+    assert [h.transform for h in _second_look_hypotheses(a, b, fa, fb, replace(opts, max_scale_disagreement=None))] == [h.transform for h in every]
+    # b's metadata claiming twice a's cell size rules the true scale out.
+    coarse = b.replace(resolution=2 * a.resolution)
+    assert not any(corner_error(h.transform, truth, b.shape) < 2.0 for h in _second_look_hypotheses(a, coarse, fa, fb, opts))
 
 
 @pytest.mark.shared

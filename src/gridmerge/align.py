@@ -33,7 +33,10 @@ Methods
     candidate is judged first, alone: when it settles the pose beyond doubt (confidence
     at least ``AlignOptions.keypoints_first``, walls agreeing on 75 % of the overlap, no
     clearly different keypoint candidate above 60 % of its score), the wall correlation
-    is skipped. The two maps' keypoints are found in parallel; a helper thread prepares
+    is skipped. Otherwise SIFT looks at both maps a second time, drawn blurred (walls
+    wider, corners rounder: other keypoints on fragmentary walls), and the matches of
+    those keypoints add candidates whose scale the maps' resolutions allow
+    (``AlignOptions.second_look``). The two maps' keypoints are found in parallel; a helper thread prepares
     the maps for scoring and refinement while the keypoints are matched, and verifies
     each settled pose while its rivals are sought.
 ``"sift"``
@@ -76,7 +79,7 @@ import numpy as np
 
 from .errors import GridMergeError
 from .estimate import MatchEvidence, match_evidence, paper_consensus, ransac, similarity_hypotheses
-from .features import FeatureExtractor, Features, SIFT
+from .features import FeatureExtractor, Features, GreyRenderer, SIFT
 from .grid import OccupancyGrid
 from .matching import knn, match_nn, match_smnn, match_snn
 from .refine import WallICP, prepare_fields, refine_direct
@@ -196,6 +199,16 @@ class AlignOptions:
         finds maps that share a small part far more often; it costs about 0.4 s more on
         such pairs (and on pairs that do not overlap at all: a fleet of 8 robots merges in
         1.4 times the time). ``False`` skips it.
+    second_look : float
+        ``"hybrid"``: when the keypoints-first stage does not settle the pose, SIFT looks
+        at both maps again (as the search sees them: cut to their known cells, isolated
+        hits freed) drawn blurred by a Gaussian of this many cells, and the matches of
+        those keypoints add pose hypotheses to the search (those whose scale the maps'
+        resolutions allow, :attr:`max_scale_disagreement`). Blurred walls are wider and
+        their corners rounder, so the detector finds other keypoints on fragmentary
+        walls; the first keypoints still give the keypoint evidence. It costs about
+        0.1 s per 1585 x 1585 map, on the pairs that reach it; 0 skips it.
+        (docs/benchmarks.md, thirteenth session, measures it.)
     """
 
     ratio: float = 0.8
@@ -225,6 +238,7 @@ class AlignOptions:
     max_scale_disagreement: float | None = 0.15
     one_sided_confidence: float | None = 0.8
     wall_led: bool = True
+    second_look: float = 1.5
 
 
 #: :class:`AlignOptions` fields for maps whose resolutions are unknown or wrong (a
@@ -613,6 +627,41 @@ def _candidate_scales(a: OccupancyGrid, b: OccupancyGrid, hyps, limit: int = 3) 
     return scales
 
 
+class _SecondLook:
+    """The keypoints of two maps drawn blurred (:attr:`AlignOptions.second_look`),
+    found when first asked for, once for both sides' searches."""
+
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, _found: list | None = None, _flip: bool = False):
+        self._a, self._b, self._opts = a, b, opts
+        self._found = [] if _found is None else _found  # shared with the swapped view
+        self._flip = _flip
+
+    def features(self) -> tuple[Features, Features]:
+        """``(a's, b's)`` blurred keypoints."""
+        if not self._found:
+            self._found.append(_extract_both(self._extractor(), self._extractor(), self._a, self._b))
+        fa, fb = self._found[0]
+        return (fb, fa) if self._flip else (fa, fb)
+
+    def swapped(self) -> "_SecondLook":
+        """The same keypoints for the search from b's side."""
+        return _SecondLook(self._a, self._b, self._opts, self._found, not self._flip)
+
+    def _extractor(self) -> FeatureExtractor:
+        opts = self._opts
+        return FeatureExtractor(SIFT(), renderer=GreyRenderer(blur_sigma=opts.second_look),
+                                max_keypoints=opts.max_keypoints, work_pixels=opts.feature_pixels)
+
+
+def _second_look_hypotheses(a: OccupancyGrid, b: OccupancyGrid, ga: Features, gb: Features, opts: AlignOptions) -> list:
+    """The pose hypotheses of the blurred keypoints ``ga``, ``gb`` whose scale the maps'
+    resolutions allow (all when any scale is)."""
+    hyps = _keypoint_hypotheses(ga, gb, opts)[0]
+    if opts.max_scale_disagreement is None:
+        return hyps
+    return [h for h in hyps if _scale_disagreement(h.transform, a, b) <= opts.max_scale_disagreement]
+
+
 class _Judge:
     """Scores, refines and ranks candidate transforms of one pair of maps, remembering
     what it has computed (the keypoints-first stage and the full search share it)."""
@@ -918,7 +967,8 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
     and ``details["first_side"]`` holds a's side's confidence and source."""
     judge = _Judge(a, b, opts, rng, pool=pool)
-    forward = _hybrid_search(judge, fa, fb)
+    second = _SecondLook(a, b, opts) if opts.second_look > 0 else None
+    forward = _hybrid_search(judge, fa, fb, second)
     tau = opts.one_sided_confidence
     own = forward.confidence or 0.0
     if tau is None or forward.transform is None or own >= tau:
@@ -930,7 +980,7 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     # From b's side, with a generator of its own (the first search's draws stay as they were);
     # the first search's tools are let go first (two maps' worth of fields and tables).
     judge.release()
-    reverse = _hybrid_search(_Judge(b, a, opts, _side_generator(rng), pool=pool), fb, fa)
+    reverse = _hybrid_search(_Judge(b, a, opts, _side_generator(rng), pool=pool), fb, fa, None if second is None else second.swapped())
     other = reverse.confidence or 0.0
     back = None if reverse.transform is None else reverse.transform.inverse
     moved = math.inf if back is None else judge.moved(forward.transform, back)
@@ -952,7 +1002,9 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     return forward
 
 
-def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
+def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLook | None" = None) -> Estimate:
+    """One side's search (a is the reference); ``second`` gives the maps' blurred
+    keypoints (:attr:`AlignOptions.second_look`) when the keypoints do not settle the pose."""
     a, b, opts = judge.a, judge.b, judge.opts
     judge.prepare()
     hyps, src, dst, pairs, votes = _keypoint_hypotheses(fa, fb, opts)
@@ -975,8 +1027,15 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features) -> Estimate:
             }
             return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
         details["keypoints_first"] = {"confidence": round(confidence, 4), "wall_agreement": round(full_wall, 4), "runner_up_ratio": round(ratio, 4)}
-    scales = _candidate_scales(a, b, hyps)
     keypoints = [(h.transform, "keypoints") for h in hyps]
+    if second is not None:
+        # A second look, on blurred maps: poses whose keypoints the grey levels did not
+        # give (its matches are not evidence: the first keypoints' matches judge).
+        extra = _second_look_hypotheses(a, b, *second.features(), opts)
+        details["second_look"] = {"hypotheses": len(extra)}
+        hyps = hyps + extra
+        keypoints += [(h.transform, "keypoints (second look)") for h in extra]
+    scales = _candidate_scales(a, b, hyps)
     # First the overlap-seeking correlation (shared free space weighs much): its best
     # poses are those with large shared explored areas, where the wall agreement judges
     # well. ``scales[0]`` is the maps' resolution ratio, the others the keypoints' scales.
