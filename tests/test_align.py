@@ -241,6 +241,32 @@ def test_the_second_look_finds_the_keypoints_once_for_both_sides(monkeypatch):
     assert len(plain) != len(fa) or not np.array_equal(plain.xy, fa.xy)
 
 
+def test_blurred_keypoints_found_ahead_are_those_the_search_finds(monkeypatch):
+    # merge finds each map's blurred keypoints once (Method.prepare); align then uses them,
+    # and they are the ones the search would find itself on the maps it works on.
+    from gridmerge.align import METHODS, AlignOptions, _blurred_extractor, _shifted, default_extractor, working_maps
+
+    a, b = samples.negative_pair(0)
+    opts = AlignOptions()
+    fa = METHODS["hybrid"].prepare(a, default_extractor(opts)(a), opts)
+    fb = METHODS["hybrid"].prepare(b, default_extractor(opts)(b), opts)
+    ca, oa, cb, ob = working_maps(a, b)
+    for f, crop, offset in ((fa, ca, oa), (fb, cb, ob)):
+        ahead, found = _shifted(f, -offset).blurred, _blurred_extractor(opts)(crop)
+        np.testing.assert_allclose(ahead.xy, found.xy)
+        np.testing.assert_array_equal(ahead.descriptors, found.descriptors)
+    # Given ahead, nothing is extracted during the alignment, and the result is the same.
+    lazy = align(a, b, rng=0)
+    assert "second_look" in lazy.details
+
+    def no_extractor(opts):
+        raise AssertionError("the blurred keypoints were found again")
+
+    monkeypatch.setattr(importlib.import_module("gridmerge.align"), "_blurred_extractor", no_extractor)
+    ahead = align(a, b, rng=0, features=(fa, fb))
+    assert (ahead.success, ahead.confidence, ahead.details) == (lazy.success, lazy.confidence, lazy.details)
+
+
 def test_the_second_look_adds_only_scales_the_resolutions_allow():
     from gridmerge.align import AlignOptions, _keypoint_hypotheses, _SecondLook, _scale_disagreement, _second_look_hypotheses
 

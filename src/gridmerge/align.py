@@ -471,6 +471,11 @@ class Method:
         method decides by its own rule (baselines, reproduced as their authors wrote them);
         the verification is still computed and reported.
     description : str
+    prepare : callable or None
+        ``prepare(grid, features, options) -> features``: what the estimator may use of
+        one map besides its keypoints, found once per map ahead of the alignments when
+        :func:`gridmerge.merge` merges three maps or more (``"hybrid"``: the keypoints of
+        the map drawn blurred, which most of a fleet's pairs ask for); ``None``: nothing.
     """
 
     name: str
@@ -478,6 +483,7 @@ class Method:
     extractor: Callable[[AlignOptions], FeatureExtractor] | None = None
     verified: bool = True
     description: str = ""
+    prepare: Callable[[OccupancyGrid, Features, AlignOptions], Features] | None = None
 
 
 def register_method(method: Method) -> Method:
@@ -629,28 +635,45 @@ def _candidate_scales(a: OccupancyGrid, b: OccupancyGrid, hyps, limit: int = 3) 
 
 class _SecondLook:
     """The keypoints of two maps drawn blurred (:attr:`AlignOptions.second_look`),
-    found when first asked for, once for both sides' searches."""
+    found when first asked for, once for both sides' searches; ``known``: those found
+    ahead (:attr:`Features.blurred`, in the maps' pixels), or ``None``."""
 
-    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, _found: list | None = None, _flip: bool = False):
-        self._a, self._b, self._opts = a, b, opts
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, known=(None, None), *,
+                 _found: list | None = None, _flip: bool = False):
+        self._a, self._b, self._opts, self._known = a, b, opts, known
         self._found = [] if _found is None else _found  # shared with the swapped view
         self._flip = _flip
 
     def features(self) -> tuple[Features, Features]:
         """``(a's, b's)`` blurred keypoints."""
         if not self._found:
-            self._found.append(_extract_both(self._extractor(), self._extractor(), self._a, self._b))
+            ka, kb = self._known
+            if ka is None and kb is None:
+                found = _extract_both(_blurred_extractor(self._opts), _blurred_extractor(self._opts), self._a, self._b)
+            else:
+                found = (ka if ka is not None else _blurred_extractor(self._opts)(self._a),
+                         kb if kb is not None else _blurred_extractor(self._opts)(self._b))
+            self._found.append(found)
         fa, fb = self._found[0]
         return (fb, fa) if self._flip else (fa, fb)
 
     def swapped(self) -> "_SecondLook":
         """The same keypoints for the search from b's side."""
-        return _SecondLook(self._a, self._b, self._opts, self._found, not self._flip)
+        return _SecondLook(self._a, self._b, self._opts, self._known, _found=self._found, _flip=not self._flip)
 
-    def _extractor(self) -> FeatureExtractor:
-        opts = self._opts
-        return FeatureExtractor(SIFT(), renderer=GreyRenderer(blur_sigma=opts.second_look),
-                                max_keypoints=opts.max_keypoints, work_pixels=opts.feature_pixels)
+
+def _blurred_extractor(opts: AlignOptions) -> FeatureExtractor:
+    return FeatureExtractor(SIFT(), renderer=GreyRenderer(blur_sigma=opts.second_look),
+                            max_keypoints=opts.max_keypoints, work_pixels=opts.feature_pixels)
+
+
+def _look_twice(grid: OccupancyGrid, features: Features, opts: AlignOptions) -> Features:
+    """``features`` with the blurred keypoints of ``grid`` as the hybrid search finds them
+    (the map cut to its known cells, isolated hits freed; in the map's pixels)."""
+    if opts.second_look <= 0:
+        return features
+    crop, offset = grid.crop_known(_CROP_MARGIN)
+    return replace(features, blurred=_shifted(_blurred_extractor(opts)(despeckle(crop)), offset))
 
 
 def _second_look_hypotheses(a: OccupancyGrid, b: OccupancyGrid, ga: Features, gb: Features, opts: AlignOptions) -> list:
@@ -967,7 +990,7 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
     and ``details["first_side"]`` holds a's side's confidence and source."""
     judge = _Judge(a, b, opts, rng, pool=pool)
-    second = _SecondLook(a, b, opts) if opts.second_look > 0 else None
+    second = _SecondLook(a, b, opts, (fa.blurred, fb.blurred)) if opts.second_look > 0 else None
     forward = _hybrid_search(judge, fa, fb, second)
     tau = opts.one_sided_confidence
     own = forward.confidence or 0.0
@@ -1271,7 +1294,8 @@ def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 
 #: Alignment methods by name (see :class:`Method` and :func:`register_method`).
 METHODS: dict[str, Method] = {}
-register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined (default)"))
+register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined (default)",
+                       prepare=_look_twice))
 register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined"))
 register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
 register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
@@ -1529,7 +1553,9 @@ def full_to_crop(t: AffineTransform, oa: np.ndarray, ob: np.ndarray) -> AffineTr
 
 
 def _shifted(f: Features, offset: np.ndarray) -> Features:
-    return f if not offset.any() else replace(f, xy=f.xy + offset)
+    if not offset.any():
+        return f
+    return replace(f, xy=f.xy + offset, blurred=None if f.blurred is None else _shifted(f.blurred, offset))
 
 
 def _confirmed_note(details: dict) -> str:

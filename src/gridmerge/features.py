@@ -78,6 +78,10 @@ class Features:
         Whether descriptors are compared by Hamming distance.
     capped : bool
         Whether keypoints were dropped to respect a maximum count.
+    blurred : Features or None
+        Keypoints of the same map drawn blurred, found ahead for the ``"hybrid"`` method's
+        second look (:attr:`gridmerge.align.AlignOptions.second_look`) when many maps
+        are merged; ``None``: found when needed.
     """
 
     xy: np.ndarray
@@ -87,6 +91,7 @@ class Features:
     descriptors: np.ndarray
     binary: bool = False
     capped: bool = False
+    blurred: "Features | None" = None
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])

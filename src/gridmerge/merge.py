@@ -353,6 +353,7 @@ class _FeatureJob:
     method: str
     options: AlignOptions
     limits: Limits | None
+    ahead: bool = False  # and what the method prepares (Method.prepare)
 
 
 def _run_features(job: _FeatureJob) -> Features | None:
@@ -361,7 +362,10 @@ def _run_features(job: _FeatureJob) -> Features | None:
         ext = extractor_for(job.method, job.limits.replace(max_keypoints=job.options.max_keypoints), job.options)
     else:
         ext = spec.extractor(job.options) if spec.extractor is not None else None
-    return ext(job.grid) if ext is not None else None
+    f = ext(job.grid) if ext is not None else None
+    if f is not None and job.ahead and spec.prepare is not None:
+        f = spec.prepare(job.grid, f, job.options)
+    return f
 
 
 @dataclass(frozen=True)
@@ -804,7 +808,10 @@ class Merger:
 
     def _feats(self, names: list[str], stats: MergeStats) -> list[Features | None]:
         todo = [n for n in names if self._features.get(n, (-1, None))[0] != self._versions[n]]
-        jobs = [_FeatureJob(self._maps[n], self.method, self.options, self._feature_limits) for n in todo]
+        # Three maps or more: most pairs are not settled by their keypoints, and what the
+        # method prepares per map (the hybrid's blurred keypoints) is found once, here.
+        ahead = len(self._maps) >= 3
+        jobs = [_FeatureJob(self._maps[n], self.method, self.options, self._feature_limits, ahead) for n in todo]
         for n, f in zip(todo, self._run("features", _run_features, jobs)):
             self._features[n] = (self._versions[n], f)
         stats.features_computed += len(todo)
