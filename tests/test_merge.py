@@ -114,3 +114,30 @@ def test_absurd_canvas_is_declined_not_allocated(pair, monkeypatch):
     monkeypatch.setattr(mm, "align", far_away)
     m = mm.merge([a, b])
     assert not m.success and "limit" in m.message
+
+
+def test_three_maps_or_more_get_their_blurred_keypoints_once_ahead(pair, monkeypatch):
+    # The hybrid's second look asks for each map's blurred keypoints in most pairs of a
+    # fleet: merge finds them once per map with the features (Method.prepare); a pair of
+    # maps finds them only if its search asks.
+    merge_module = importlib.import_module("gridmerge.merge")
+    a, b, _ = pair
+    other, _ = samples.negative_pair(5)
+    jobs = []
+    run = merge_module._run_features
+
+    def recording(job):
+        features = run(job)
+        jobs.append((job.ahead, features))
+        return features
+
+    monkeypatch.setattr(merge_module, "_run_features", recording)
+    merge([a, b])
+    assert [ahead for ahead, _ in jobs] == [False, False] and all(f.blurred is None for _, f in jobs)
+    jobs.clear()
+    m = merge([a, b, other])
+    assert m.success and [ahead for ahead, _ in jobs] == [True, True, True]
+    assert all(f.blurred is not None and len(f.blurred) > 0 for _, f in jobs)
+    # Methods that prepare nothing get their keypoints alone.
+    job = merge_module._FeatureJob(a, "sift", gridmerge.AlignOptions(), None, True)
+    assert run(job).blurred is None
