@@ -9,6 +9,7 @@ import pytest
 import gridmerge
 from gridmerge import AlignResult, OccupancyGrid, align, samples
 from gridmerge.transforms import ScaledRotationTransform, SimilarityTransform, corner_error
+from gridmerge.features import Features
 
 # The paper's Table I: exact 30 deg, (-86, -36) px, 0.95; its estimate was off by
 # 0.09 deg, 0.21 px (x), 0.11 px (y) and 0.0003 in scale.
@@ -681,7 +682,7 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
 
     monkeypatch.setattr(align_module, "_hybrid_search", search)
     opts = align_module.AlignOptions()
-    fa = fb = None
+    fa = fb = Features.empty()
     est = align_module._both_sides(a, b, fa, fb, opts, np.random.default_rng(0), None)
     assert calls == [True, False]
     if expect == "theirs":
