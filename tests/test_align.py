@@ -797,3 +797,15 @@ def test_real_maps_merged_from_the_side_that_finds_them_surely(shared_data):
     assert r.details["other_side"]["taken"] and r.details["other_side"]["moved_px"] < 10
     assert _within_protocol(r.transform, pair)
     assert not align(a, b, rng=0, one_sided_confidence=None).success
+
+
+def test_the_second_look_is_bounded_whatever_the_first_keypoints_may_use():
+    # It only proposes poses: at most 5000 keypoints on at most 400 000 pixels, also when
+    # the first keypoints are uncapped (a map of pure noise would otherwise cost seconds).
+    from gridmerge.align import AlignOptions, _blurred_extractor
+
+    uncapped = _blurred_extractor(AlignOptions(max_keypoints=0, feature_pixels=0))
+    assert (uncapped.max_keypoints, uncapped.work_pixels) == (5000, 400_000)
+    tighter = _blurred_extractor(AlignOptions(max_keypoints=300, feature_pixels=100_000))
+    assert (tighter.max_keypoints, tighter.work_pixels) == (300, 100_000)
+    assert tighter.renderer.blur_sigma == 1.5

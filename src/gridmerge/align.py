@@ -206,8 +206,10 @@ class AlignOptions:
         those keypoints add pose hypotheses to the search (those whose scale the maps'
         resolutions allow, :attr:`max_scale_disagreement`). Blurred walls are wider and
         their corners rounder, so the detector finds other keypoints on fragmentary
-        walls; the first keypoints still give the keypoint evidence. It costs about
-        0.1 s per 1585 x 1585 map, on the pairs that reach it; 0 skips it.
+        walls; the first keypoints still give the keypoint evidence. It keeps at most
+        5000 keypoints per map, detected on at most 400 000 pixels (fewer when
+        :attr:`feature_pixels` is lower). It costs about 0.1 s per 1585 x 1585 map, on
+        the pairs that reach it; 0 skips it.
         (docs/benchmarks.md, thirteenth session, measures it.)
     """
 
@@ -662,9 +664,20 @@ class _SecondLook:
         return _SecondLook(self._a, self._b, self._opts, self._known, _found=self._found, _flip=not self._flip)
 
 
+#: The most keypoints the second look keeps per map (the strongest), and the most pixels
+#: it detects them on (also when ``AlignOptions.feature_pixels`` is 0): it only proposes
+#: poses, which are refined at full resolution. Real maps stay far below the keypoint
+#: cap (at most 1342 on the Halmstad maps, 2511 on the simulated ones, seeds 0-2); two
+#: 2000 x 2000 maps of pure noise at full resolution cost 15 s of CPU more without them.
+_SECOND_LOOK_KEYPOINTS = 5000
+_SECOND_LOOK_PIXELS = 400_000
+
+
 def _blurred_extractor(opts: AlignOptions) -> FeatureExtractor:
+    cap = min(opts.max_keypoints, _SECOND_LOOK_KEYPOINTS) if opts.max_keypoints > 0 else _SECOND_LOOK_KEYPOINTS
+    pixels = min(opts.feature_pixels, _SECOND_LOOK_PIXELS) if opts.feature_pixels > 0 else _SECOND_LOOK_PIXELS
     return FeatureExtractor(SIFT(), renderer=GreyRenderer(blur_sigma=opts.second_look),
-                            max_keypoints=opts.max_keypoints, work_pixels=opts.feature_pixels)
+                            max_keypoints=cap, work_pixels=pixels)
 
 
 def _look_twice(grid: OccupancyGrid, features: Features, opts: AlignOptions) -> Features:
