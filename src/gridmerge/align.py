@@ -685,8 +685,8 @@ def _look_twice(grid: OccupancyGrid, features: Features, opts: AlignOptions) -> 
     (the map cut to its known cells, isolated hits freed; in the map's pixels)."""
     if opts.second_look <= 0:
         return features
-    crop, offset = grid.crop_known(_CROP_MARGIN)
-    return replace(features, blurred=_shifted(_blurred_extractor(opts)(despeckle(crop)), offset))
+    crop, offset = _working_map(grid)
+    return replace(features, blurred=_shifted(_blurred_extractor(opts)(crop), offset))
 
 
 def _second_look_hypotheses(a: OccupancyGrid, b: OccupancyGrid, ga: Features, gb: Features, opts: AlignOptions) -> list:
@@ -695,7 +695,7 @@ def _second_look_hypotheses(a: OccupancyGrid, b: OccupancyGrid, ga: Features, gb
     hyps = _keypoint_hypotheses(ga, gb, opts)[0]
     if opts.max_scale_disagreement is None:
         return hyps
-    return [h for h in hyps if _scale_disagreement(h.transform, a, b) <= opts.max_scale_disagreement]
+    return [h for h in hyps if not _scale_ruled_out(_scale_disagreement(h.transform, a, b), opts)]
 
 
 class _Judge:
@@ -1547,11 +1547,15 @@ def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True)
     the cut's pixel offset, and with isolated hits freed when ``despeckled`` (they are
     not walls). Map transforms between the cuts back with :func:`crop_to_full`.
     """
-    ca, oa = a.crop_known(_CROP_MARGIN)
-    cb, ob = b.crop_known(_CROP_MARGIN)
-    if despeckled:
-        ca, cb = despeckle(ca), despeckle(cb)
+    ca, oa = _working_map(a, despeckled)
+    cb, ob = _working_map(b, despeckled)
     return ca, oa, cb, ob
+
+
+def _working_map(grid: OccupancyGrid, despeckled: bool = True) -> tuple[OccupancyGrid, np.ndarray]:
+    """One map of :func:`working_maps`: its cut and the cut's pixel offset."""
+    crop, offset = grid.crop_known(_CROP_MARGIN)
+    return (despeckle(crop) if despeckled else crop), offset
 
 
 def crop_to_full(t: AffineTransform, oa: np.ndarray, ob: np.ndarray) -> AffineTransform:
@@ -1576,12 +1580,18 @@ def _confirmed_note(details: dict) -> str:
     return f" (confirmed by {details['confirmed_by']})" if "confirmed_by" in details else ""
 
 
+def _scale_ruled_out(scale_off: float, opts: AlignOptions) -> bool:
+    """Whether a scale that far from the maps' resolution ratio (:func:`_scale_disagreement`)
+    is declined (:attr:`AlignOptions.max_scale_disagreement`)."""
+    return opts.max_scale_disagreement is not None and scale_off > opts.max_scale_disagreement * (1 + 1e-9)
+
+
 def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool = True,
                     scale_off: float = 0.0, matched: bool = False) -> str:
     """Why a verified pose is declined ("" when it is not); ``scale_off``: its scale's
     disagreement with the maps' resolution ratio (:func:`_scale_disagreement`);
     ``matched``: the keypoint matches confirm it (:attr:`Estimate.matched`)."""
-    if opts.max_scale_disagreement is not None and scale_off > opts.max_scale_disagreement * (1 + 1e-9):
+    if _scale_ruled_out(scale_off, opts):
         return (f"declined: the scale disagrees with the maps' resolutions by {scale_off:.0%} "
                 f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
     if need_inliers and inliers < opts.min_inliers:
