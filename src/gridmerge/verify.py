@@ -238,27 +238,46 @@ class WallScorer:
         for g in (a, b):
             walls = g.occupied()
             known = g.known
-            # One byte per cell: 1 known, 2 free.
+            # One byte per cell: 1 known, 2 free; then one cell more, unknown and far from
+            # any wall, that every point off the map looks up.
             code = known.astype(np.uint8)
             code[g.free()] |= 2
             dist = cv2.distanceTransform((~walls).astype(np.uint8), cv2.DIST_L2, 3) if walls.any() else np.full(g.shape, np.inf, np.float32)
-            self._maps.append((g.shape, code.ravel(), dist.ravel(), _strided_cells(walls, max_points), _strided_cells(known, max_points)))
+            code = np.append(code.ravel(), np.uint8(0))
+            dist = np.append(dist.ravel(), np.float32(np.inf))
+            self._maps.append((g.shape, code, dist, _columns(_strided_cells(walls, max_points)), _columns(_strided_cells(known, max_points))))
 
     @staticmethod
-    def _lookup(points: np.ndarray, shape, code: np.ndarray, dist: np.ndarray | None, tol: float):
-        """``(on known, near a wall among those, on free away from walls)`` counts."""
+    def _cells(points: tuple[np.ndarray, np.ndarray], m: np.ndarray, shape) -> np.ndarray:
+        """Flat indices of the cells the ``(x, y)`` columns ``points`` land on, moved by
+        the ``(3, 3)`` matrix ``m``; ``h * w`` (the extra cell) off the map."""
+        x, y = points
         h, w = shape
-        p = np.rint(points).astype(np.int64)
-        inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
-        flat = p[inside, 1] * w + p[inside, 0]
+        px = x * m[0, 0]
+        px += y * m[0, 1]
+        px += m[0, 2]
+        py = x * m[1, 0]
+        py += y * m[1, 1]
+        py += m[1, 2]
+        xi = np.rint(px, out=px).astype(np.intp)
+        yi = np.rint(py, out=py).astype(np.intp)
+        # Negative indices wrap to huge unsigned ones: one comparison per axis.
+        inside = (xi.view(np.uintp) < w) & (yi.view(np.uintp) < h)
+        yi *= w
+        yi += xi
+        return np.where(inside, yi, h * w)
+
+    @classmethod
+    def _lookup(cls, points, m, shape, code: np.ndarray, dist: np.ndarray | None, tol: float):
+        """``(on known, near a wall among those, on free away from walls)`` counts."""
+        flat = cls._cells(points, m, shape)
         c = code.take(flat)
-        on_known = (c & 1).astype(bool)
+        on_known = (c & 1).view(bool)
         if dist is None:
             return int(np.count_nonzero(on_known)), 0, 0
-        d = dist.take(flat)
-        near = d <= tol
+        near = dist.take(flat) <= tol
         good = int(np.count_nonzero(on_known & near))
-        conflict = int(np.count_nonzero((c & 2).astype(bool) & ~near))
+        conflict = int(np.count_nonzero((c >> 1).view(bool) & ~near))
         return int(np.count_nonzero(on_known)), good, conflict
 
     def __call__(self, transform: AffineTransform, *, tolerance: float | None = None) -> QuickScore:
@@ -266,19 +285,25 @@ class WallScorer:
         cells; default: the scorer's)."""
         (sa, ca, da, wa, pa), (sb, cb, db, wb, pb) = self._maps
         tol = self.tolerance if tolerance is None else float(tolerance)
-        inv = np.linalg.inv(transform.params)
-        scale = math.sqrt(abs(float(np.linalg.det(transform.params[:2, :2])))) or 1.0
-        n_ab, good_ab, bad_ab = self._lookup(wb @ transform.params[:2, :2].T + transform.params[:2, 2], sa, ca, da, tol)
-        n_ba, good_ba, bad_ba = self._lookup(wa @ inv[:2, :2].T + inv[:2, 2], sb, cb, db, tol / scale)
+        t = transform.params
+        inv = np.linalg.inv(t)
+        scale = math.sqrt(abs(float(np.linalg.det(t[:2, :2])))) or 1.0
+        n_ab, good_ab, bad_ab = self._lookup(wb, t, sa, ca, da, tol)
+        n_ba, good_ba, bad_ba = self._lookup(wa, inv, sb, cb, db, tol / scale)
         shares = [g / n for g, n in ((good_ab, n_ab), (good_ba, n_ba)) if n > 0]
         wall = float(np.mean(shares)) if shares else 0.0
         cons = [g / (g + c) for g, c in ((good_ab, bad_ab), (good_ba, bad_ba)) if g + c > 0]
         consistency = float(np.mean(cons)) if cons else 0.0
-        landed, _, _ = self._lookup(pb @ transform.params[:2, :2].T + transform.params[:2, 2], sa, ca, None, 0.0)
-        overlap = landed / len(pb) if len(pb) else 0.0
-        landed_a, _, _ = self._lookup(pa @ inv[:2, :2].T + inv[:2, 2], sb, cb, None, 0.0)
-        shared = max(overlap, landed_a / len(pa) if len(pa) else 0.0)
+        landed, _, _ = self._lookup(pb, t, sa, ca, None, 0.0)
+        overlap = landed / len(pb[0]) if len(pb[0]) else 0.0
+        landed_a, _, _ = self._lookup(pa, inv, sb, cb, None, 0.0)
+        shared = max(overlap, landed_a / len(pa[0]) if len(pa[0]) else 0.0)
         return QuickScore(wall, overlap, n_ab + n_ba, consistency, shared)
+
+
+def _columns(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``x`` and ``y`` columns of ``(K, 2)`` points, each contiguous."""
+    return np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
 
 
 def _strided_cells(mask: np.ndarray, max_points: int) -> np.ndarray:
