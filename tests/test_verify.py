@@ -92,6 +92,57 @@ def test_wall_scorer_agrees_with_itself_and_tells_wrong_poses():
     assert same.wall_agreement == 1.0 and same.consistency == 1.0 and same.overlap == 1.0
 
 
+def _scorer_reference(a, b, t, tol):
+    """WallScorer's verdict computed plainly: every sampled point moved by a matrix
+    product, rounded, kept when it lands inside the other map."""
+    def lookup(points, m, g, dist, tol):
+        p = np.rint(points @ m[:2, :2].T + m[:2, 2]).astype(int)
+        h, w = g.shape
+        inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+        x, y = p[inside, 0], p[inside, 1]
+        known, free = g.known[y, x], g.free()[y, x]
+        if dist is None:
+            return int(known.sum()), 0, 0
+        near = dist[y, x] <= np.float32(tol)
+        return int(known.sum()), int((known & near).sum()), int((free & ~near).sum())
+
+    def dist(g):
+        return cv2.distanceTransform((~g.occupied()).astype(np.uint8), cv2.DIST_L2, 3)
+
+    wa, wb = _strided_cells(a.occupied(), 20000), _strided_cells(b.occupied(), 20000)
+    ka, kb = _strided_cells(a.known, 20000), _strided_cells(b.known, 20000)
+    inv = np.linalg.inv(t.params)
+    scale = np.sqrt(abs(np.linalg.det(t.params[:2, :2])))
+    n1, g1, c1 = lookup(wb, t.params, a, dist(a), tol)
+    n2, g2, c2 = lookup(wa, inv, b, dist(b), tol / scale)
+    landed_b = lookup(kb, t.params, a, None, 0)[0] / len(kb)
+    landed_a = lookup(ka, inv, b, None, 0)[0] / len(ka)
+    shares = [g / n for g, n in ((g1, n1), (g2, n2)) if n]
+    wall = float(np.mean(shares)) if shares else 0.0
+    return wall, landed_b, n1 + n2, max(landed_b, landed_a)
+
+
+def test_wall_scorer_counts_as_a_plain_lookup_also_off_the_maps():
+    # Poses that move points off both maps on every side (negative coordinates included):
+    # points off a map count as on no known cell, exactly as a plain bounds check.
+    a, b, truth = samples.robot_pair(0)
+    rng = np.random.default_rng(3)
+    # b known to its very edges (free, walls every few cells), so that a point one cell
+    # beyond them would count.
+    d = np.where(rng.random((120, 90)) < 0.15, 1.0, 0.0)
+    b = OccupancyGrid(d)
+    s = WallScorer(a, b, tolerance=2.0)
+    poses = [SimilarityTransform(truth)] + [
+        SimilarityTransform(rotation=rng.uniform(-np.pi, np.pi), scale=rng.uniform(0.6, 1.6), translation=rng.uniform(-300, 500, 2))
+        for _ in range(40)
+    ]
+    for t in poses:
+        q = s(t)
+        wall, overlap, compared, shared = _scorer_reference(a, b, t, 2.0)
+        assert (q.wall_agreement, q.overlap, q.walls_compared, q.shared) == pytest.approx((wall, overlap, compared, shared), abs=1e-12)
+    assert any(s(t).walls_compared == 0 for t in poses) and any(0 < s(t).overlap < 1 for t in poses)
+
+
 def test_wall_scorer_judges_at_another_tolerance_on_request():
     # 6 px off, few walls are within the scorer's 2 px of each other, most within 10 px;
     # the scorer's own tolerance is unchanged by the request.
