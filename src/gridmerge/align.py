@@ -1182,38 +1182,53 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
     matched = _matched(judge, best, poses, fa, fb, pairs, src, dst, confidence)
     if matched is None:
         return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
-    evidence, rival, matched_confidence = matched
-    details["keypoint_evidence"] = {**evidence.to_dict(), "confidence": round(matched_confidence, 4)}
-    if rival is not None:
-        details["keypoint_evidence"]["rival_significance"] = round(rival, 3)
-    taken = matched_confidence > confidence and _full_wall(v) >= opts.min_wall_agreement_matched
-    floor = max(confidence, matched_confidence if taken else 0.0)
-    if floor < opts.min_confidence:
+    details["keypoint_evidence"] = _evidence_details(*matched)
+    taken = matched[2] > confidence and _full_wall(v) >= opts.min_wall_agreement_matched
+    if max(confidence, matched[2] if taken else 0.0) < opts.min_confidence:
         # The same merge fitted to another part of maps that bend scores nearly as well on
         # the walls, and the keypoint matches may support it where they do not support
-        # the winner (Halmstad E5_12-E5_14: a pose 43 px from the winner at b's median
-        # shared cell, walls 0.34 against 0.36, 7 places agreeing against 5). The
-        # strongest such evidence stands for the merge, at that pose.
-        for t, alt_kind in judge.same_merge(best):
-            alt = _matched(judge, t, poses, fa, fb, pairs, src, dst, floor)
-            if alt is None or alt[2] <= floor:
-                continue
-            vt = judge._verify(t)
-            if _full_wall(vt) < opts.min_wall_agreement_matched:
-                continue
-            evidence, rival, matched_confidence = alt
-            best, v, floor, taken = t, vt, matched_confidence, True
-            details["source"] = alt_kind
-            details["preferred_to"] = {"pose": "the walls' best", "keypoint_evidence": details.pop("keypoint_evidence")}
-            details["keypoint_evidence"] = {**evidence.to_dict(), "confidence": round(matched_confidence, 4)}
-            if rival is not None:
-                details["keypoint_evidence"]["rival_significance"] = round(rival, 3)
-        if taken:
+        # the winner (Halmstad E5_12-E5_14: a pose moving b's shared part 43 px from the
+        # winner's, walls agreeing on 34 % against 36 %, 7 places agreeing with it against
+        # 5). The most confident such pose stands for the merge.
+        other = _same_merge_matched(judge, best, poses, fa, fb, pairs, src, dst, max(confidence, matched[2] if taken else 0.0))
+        if other is not None:
+            t, other_kind, vt, other_matched = other
+            details["same_merge"] = {"instead_of": details["source"], "moved_px": round(judge.moved(best, t), 1),
+                                     "keypoint_evidence": details["keypoint_evidence"]}
+            details.update(source=other_kind, keypoint_evidence=_evidence_details(*other_matched))
+            best, v, matched, taken = t, vt, other_matched, True
             inl = best.residuals(src, dst) < opts.residual_threshold if len(src) else np.zeros(0, bool)
     if taken:
-        details["confirmed_by"] = _confirmed_by(evidence)
-        return Estimate(best, inl, src, dst, details=details, verification=v, confidence=floor, matched=True)
+        details["confirmed_by"] = _confirmed_by(matched[0])
+        return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched[2], matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+
+
+def _evidence_details(evidence: MatchEvidence, rival: float | None, confidence: float) -> dict:
+    """``details["keypoint_evidence"]`` of :func:`_matched`'s result."""
+    out = {**evidence.to_dict(), "confidence": round(confidence, 4)}
+    if rival is not None:
+        out["rival_significance"] = round(rival, 3)
+    return out
+
+
+def _same_merge_matched(judge: _Judge, best: AffineTransform, poses: list[AffineTransform], fa: Features, fb: Features,
+                        pairs: np.ndarray, src: np.ndarray, dst: np.ndarray, confidence: float):
+    """``(pose, kind, verification, matched)`` of the refined candidate that ``best`` beat
+    and that is the same merge (:meth:`_Judge.same_merge`) whose keypoint evidence
+    (:func:`_matched`, its rivals weighed) gives the highest confidence above
+    ``confidence``, with walls agreeing on ``min_wall_agreement_matched`` at least; ``None``
+    when there is none."""
+    found = None
+    for t, kind in judge.same_merge(best):
+        m = _matched(judge, t, poses, fa, fb, pairs, src, dst, confidence)
+        if m is None or m[2] <= confidence:
+            continue
+        vt = judge._verify(t)
+        if _full_wall(vt) < judge.opts.min_wall_agreement_matched:
+            continue
+        found, confidence = (t, kind, vt, m), m[2]
+    return found
 
 
 def _matched(judge: _Judge, best: AffineTransform, candidates: list[AffineTransform], fa: Features, fb: Features,
