@@ -1184,13 +1184,14 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
     details["keypoint_evidence"] = _evidence_details(*matched)
     taken = matched[2] > confidence and _full_wall(v) >= opts.min_wall_agreement_matched
-    if max(confidence, matched[2] if taken else 0.0) < opts.min_confidence:
+    reached = max(confidence, matched[2] if taken else 0.0)
+    if reached < opts.min_confidence:
         # The same merge fitted to another part of maps that bend scores nearly as well on
         # the walls, and the keypoint matches may support it where they do not support
         # the winner (Halmstad E5_12-E5_14: a pose moving b's shared part 43 px from the
         # winner's, walls agreeing on 34 % against 36 %, 7 places agreeing with it against
         # 5). The most confident such pose stands for the merge.
-        other = _same_merge_matched(judge, best, poses, fa, fb, pairs, src, dst, max(confidence, matched[2] if taken else 0.0))
+        other = _same_merge_matched(judge, best, poses, fa, fb, pairs, src, dst, reached)
         if other is not None:
             t, other_kind, vt, other_matched = other
             details["same_merge"] = {"instead_of": details["source"], "moved_px": round(judge.moved(best, t), 1),
