@@ -715,7 +715,7 @@ class _Judge:
         self._shared: dict = {}  # pose -> that sample moved into a, and which land on a's known cells
         self._icp: WallICP | None = None
         self._polished: dict = {}  # pose -> its polish (whatever the score)
-        self._beaten: dict = {}  # pose -> the refined candidates it beat in its decision
+        self._same: dict = {}  # pose -> the refined candidates it beat that are the same merge
 
     def release(self) -> None:
         """Let go of the scorer, the refinement's fields and the polish's tables (the
@@ -953,11 +953,13 @@ class _Judge:
             chosen.append([value, t, kind])
         chosen.sort(key=lambda c: -c[0])
         value, best, kind = chosen[0]
-        self._beaten[self._key(best)] = [(t, k) for _, t, k in chosen[1:]]
         verification = self._later(self._verify, best)  # while its rivals are sought
+        # The refined candidates it beat are rivals or the same merge (:meth:`same_merge`).
+        beaten = [(w, t, k, self.rival(best, t)) for w, t, k in chosen[1:]]
+        self._same[self._key(best)] = [(t, k) for _, t, k, apart in beaten if not apart]
         # The best score of a clearly different pose: repeated structure makes it close to the best.
         others = [w for w, t, _ in scored if self.rival(best, t)]
-        others += [c[0] for c in chosen[1:] if self.rival(best, c[1])]
+        others += [w for w, _, _, apart in beaten if apart]
         others += [score(t) for t in rivals if self.rival(best, t)]
         others.append(self.shifted(best, score))
         runner_up = max(others, default=0.0)
@@ -967,7 +969,7 @@ class _Judge:
         """The refined candidates that ``best`` beat when :meth:`decide` chose it and that
         are not its rivals (:meth:`rival`): the same merge, fitted to another part of maps
         that bend; ``(pose, kind)``, best score first."""
-        return [(t, k) for t, k in self._beaten.get(self._key(best), []) if not self.rival(best, t)]
+        return list(self._same.get(self._key(best), []))
 
 
 def _degrees_apart(u: float, v: float) -> float:
