@@ -39,6 +39,9 @@ Methods
     (``AlignOptions.second_look``). The two maps' keypoints are found in parallel; a helper thread prepares
     the maps for scoring and refinement while the keypoints are matched, and verifies
     each settled pose while its rivals are sought.
+    The search takes the map that covers more ground as its reference, whichever order
+    the maps come in (``AlignOptions.reference``): swapping the maps inverts the
+    transform and keeps the decision.
 ``"sift"``
     The keypoint candidates alone, verified and refined the same way.
 ``"ransac"``
@@ -87,7 +90,7 @@ from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 from .correlate import correlation_hypotheses, match_rotation, rotation_candidates
 from .verify import Verification, WallScorer, despeckle, verify
 
-__all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor", "ANY_SCALE"]
+__all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor", "ANY_SCALE", "reference_first"]
 
 
 @dataclass(frozen=True)
@@ -193,6 +196,18 @@ class AlignOptions:
         :func:`gridmerge.merge` with three maps or more searches its pairs from one side
         and, after placing the maps, searches from both sides the alignments that lie on
         no loop of the map graph (a loop checks the others).
+    reference : {"larger", "a"}
+        Which map the search takes as its reference, for the methods that may choose
+        (:attr:`Method.order_free`: ``"hybrid"``). ``"larger"`` (default): the map with
+        more known area (square metres; ties broken by the maps' cells), whichever order
+        they come in, so ``align(b, a)`` gives ``align(a, b)``'s decision with the
+        transform inverted; ``result.details["reference"]`` says which map it was, and
+        the ``verification`` is counted in that map's cells. The search's steps are not
+        symmetric (which map's keypoints seek partners, which map slides over the other),
+        so with ``"a"`` the order of the maps can change the outcome: 5 of the 97
+        Halmstad sensor pairs merged in one order only, and 2 of the 56 cross-building
+        pairs were merged wrongly with the maps swapped (docs/benchmarks.md, fifteenth
+        session).
     wall_led : bool
         ``"hybrid"``: when the first, overlap-seeking wall search gives no confident pose,
         search again with the wall-led correlation (:mod:`gridmerge.correlate`), which
@@ -241,6 +256,7 @@ class AlignOptions:
     one_sided_confidence: float | None = 0.8
     wall_led: bool = True
     second_look: float = 1.5
+    reference: str = "larger"
 
 
 #: :class:`AlignOptions` fields for maps whose resolutions are unknown or wrong (a
@@ -279,6 +295,8 @@ class AlignResult:
     elapsed_s : float
         Wall time of the alignment.
     verification : Verification or None
+        The agreement the decision was made on, counted in the reference map's cells
+        (``details["reference"]``: ``"a"`` or ``"b"``, for the order-free methods).
     inlier_xy : (K, 2, 2) float array
         Inlier correspondences ``[[xb, yb], [xa, ya]]`` (for plots).
     details : dict
@@ -478,6 +496,12 @@ class Method:
         one map besides its keypoints, found once per map ahead of the alignments when
         :func:`gridmerge.merge` merges three maps or more (``"hybrid"``: the keypoints of
         the map drawn blurred, which most of a fleet's pairs ask for); ``None``: nothing.
+    order_free : bool
+        ``True``: with ``AlignOptions.reference="larger"`` (the default), :func:`align`
+        searches with the map that covers more ground as the reference, whichever order
+        the maps come in, so that ``align(b, a)`` is ``align(a, b)`` inverted
+        (``"hybrid"``). ``False``: the search takes a as the reference (the baselines, as
+        their authors wrote them).
     """
 
     name: str
@@ -486,6 +510,7 @@ class Method:
     verified: bool = True
     description: str = ""
     prepare: Callable[[OccupancyGrid, Features, AlignOptions], Features] | None = None
+    order_free: bool = False
 
 
 def register_method(method: Method) -> Method:
@@ -1043,7 +1068,7 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
                         confidence=other, matched=reverse.matched)
     forward.details["other_side"] = {**note, "same_pose": False}
     where = "no pose" if back is None else f"a pose {moved:.0f} px away" if math.isfinite(moved) else "a pose that shares nothing with it"
-    forward.one_sided = (f"declined: found from a's side only (from b's side the search finds {where}); "
+    forward.one_sided = (f"declined: found from one map's side only (from the other's the search finds {where}); "
                          f"a one-sided pose needs confidence {tau:g} (has {own:.2f})")
     return forward
 
@@ -1360,7 +1385,7 @@ def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 #: Alignment methods by name (see :class:`Method` and :func:`register_method`).
 METHODS: dict[str, Method] = {}
 register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined (default)",
-                       prepare=_look_twice))
+                       prepare=_look_twice, order_free=True))
 register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined"))
 register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
 register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
@@ -1395,7 +1420,10 @@ def align(
     Parameters
     ----------
     a, b : OccupancyGrid
-        The maps; ``a`` is the reference.
+        The maps; the result places b in a's frame. The default method searches with
+        the larger map as its reference whichever order they come in
+        (:attr:`AlignOptions.reference`), so swapping them gives the inverse transform
+        and the same decision.
     method : str
         ``"hybrid"`` (default), ``"sift"``, ``"ransac"``, ``"paper"`` or a registered
         baseline; see the module's documentation.
@@ -1417,9 +1445,18 @@ def align(
     if method not in METHODS:
         raise GridMergeError(f"unknown alignment method {method!r} (use one of {', '.join(METHODS)})")
     opts = replace(options or AlignOptions(), **overrides)
-    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if opts.reference not in ("larger", "a"):
+        raise GridMergeError(f"unknown reference {opts.reference!r} (use 'larger' or 'a')")
     t0 = time.perf_counter()
     spec = METHODS[method]
+    if spec.order_free and opts.reference == "larger":
+        if not reference_first(a, b):
+            # b is the reference: its search, inverted.
+            swapped = align(b, a, method=method, options=replace(opts, reference="a"), rng=rng,
+                            features=None if features is None else (features[1], features[0]), extractor=extractor)
+            return _inverted(swapped, a, b, time.perf_counter() - t0)
+        opts = replace(opts, reference="a")
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
     if fa is None and fb is None and ext is not None and extractor is None:
@@ -1454,6 +1491,8 @@ def align(
             message = "" if est.success else (est.message or "declined by the method's own rule")
     success = est.transform is not None and not message
     details = dict(est.details)
+    if spec.order_free:
+        details["reference"] = "a"
     details["features_capped"] = bool(fa.capped or fb.capped)
     inlier_xy = np.stack([est.src[est.inliers], est.dst[est.inliers]], axis=1) if n_inl else np.zeros((0, 2, 2))
     return AlignResult(
@@ -1472,6 +1511,48 @@ def align(
         verification=v,
         inlier_xy=inlier_xy,
         details=details,
+    )
+
+
+def reference_first(a: OccupancyGrid, b: OccupancyGrid) -> bool:
+    """Whether ``a`` is the reference of an order-free search (``AlignOptions.reference``
+    ``"larger"``): the map with more known area (square metres), then with more known
+    cells, more occupied cells, more rows and columns; between maps equal in all of
+    these, the one whose cells' bytes come first. ``reference_first(a, b)`` and
+    ``reference_first(b, a)`` differ unless the maps are the same.
+
+    >>> import numpy as np
+    >>> from gridmerge import OccupancyGrid
+    >>> small = OccupancyGrid(np.zeros((4, 4)))
+    >>> large = OccupancyGrid(np.zeros((3, 8)))
+    >>> reference_first(large, small), reference_first(small, large)
+    (True, False)
+    """
+    ka, kb = _reference_key(a), _reference_key(b)
+    if ka != kb:
+        return ka > kb
+    return a.data.tobytes() <= b.data.tobytes()
+
+
+def _reference_key(g: OccupancyGrid) -> tuple:
+    known = int(np.count_nonzero(g.known))
+    return (known * float(g.resolution) ** 2, known, int(np.count_nonzero(g.occupied())), g.shape, float(g.resolution))
+
+
+def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: float) -> AlignResult:
+    """``r``, the alignment of ``a`` onto ``b``, as the alignment of ``b`` onto ``a``:
+    the same decision, the transforms inverted, the pairs of per-map values swapped. The
+    verification stays the one the decision was made on (counted in b's cells)."""
+    inverse = None if r.candidate is None else r.candidate.inverse
+    return replace(
+        r,
+        transform=inverse if r.success else None,
+        candidate=inverse,
+        metric_transform=None if inverse is None else pixel_to_metric(inverse, b, a),
+        keypoints=(r.keypoints[1], r.keypoints[0]),
+        elapsed_s=elapsed_s,
+        inlier_xy=r.inlier_xy[:, ::-1].copy(),
+        details={**r.details, "reference": "b"},
     )
 
 
