@@ -439,16 +439,85 @@ def test_a_nudged_pose_reaches_the_truth_that_refining_does_not():
     assert judge.quick(nudged[int(np.argmin(errors))]) > 1.1 * judge.quick(alone)
 
 
+@pytest.mark.parametrize("shift", [(40.0, 0.0), (0.0, 45.0)])
+def test_nudges_climb_to_a_pose_beyond_one_nudge(shift):
+    """Farther than one nudge and a refinement reach (20 + 12 px), the nudges climb: the
+    best nudged pose is nudged again while it improves, and reaches the truth."""
+    from gridmerge.align import AlignOptions, _Judge
+
+    a, b, truth = samples.robot_pair(0)
+    judge = _Judge(a, b, AlignOptions(), np.random.default_rng(0))
+    judge.prepare()
+    start = SimilarityTransform(SimilarityTransform(translation=shift).params @ truth)
+    assert min(corner_error(t, truth, b.shape) for t in judge.nudged(start)) > 10.0
+    climbed = judge.climbed(start)
+    best = max(climbed, key=judge.quick)
+    assert corner_error(best, truth, b.shape) < 1.0 and judge.quick(best) > 2 * judge.quick(start)
+    # It stops where no nudge improves: from the truth, one round.
+    assert len(judge.climbed(SimilarityTransform(truth))) == len(judge.nudged(SimilarityTransform(truth)))
+
+
 @pytest.mark.shared
 def test_a_room_slid_along_a_wall_is_nudged_to_the_truth(shared_data):
     # Simulated pair 52 (seed 1): one room, the same in both maps. The overlap-seeking
     # search's pose slid 26 px along a wall (walls agree on 87 %), was refined in place
     # and taken with confidence 1.0; the truth (97 %) lay beyond the refinement's reach.
+    # From b's side (b is the larger map, the reference by default) the first nudge
+    # left the pose 26 px off; the second reaches the truth.
     from gridmerge.bench import datasets
 
     case = datasets.simulated(n=60, seed=1, data_dir=shared_data)[52]
-    r = align(case.a, case.b, rng=0)
-    assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
+    for reference in ("larger", "a"):
+        r = align(case.a, case.b, rng=0, reference=reference)
+        assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
+    assert r.details["reference"] == "a" and align(case.a, case.b, rng=0).details["reference"] == "b"
+
+
+def _inverse_of(r1, r2) -> bool:
+    return np.allclose(r1.candidate.params @ r2.candidate.params, np.eye(3), atol=1e-9)
+
+
+@pytest.mark.parametrize("pair", ["table1", "robots", "different places"])
+def test_swapping_the_maps_inverts_the_transform_and_keeps_the_decision(pair):
+    """The default search takes the larger map as its reference whichever order the maps
+    come in: ``align(b, a)`` is ``align(a, b)`` inverted, declined alike."""
+    from gridmerge.align import reference_first
+
+    if pair == "table1":
+        a, b, _ = samples.table1_pair(0)
+    elif pair == "robots":
+        a, b, _ = samples.robot_pair(1)
+    else:
+        a, b = samples.negative_pair(0)
+    assert reference_first(a, b) != reference_first(b, a)
+    r1, r2 = align(a, b, rng=0), align(b, a, rng=0)
+    assert r1.success == r2.success == (pair != "different places")
+    assert _inverse_of(r1, r2)
+    assert (r1.confidence, r1.message, r1.inliers, r1.matches) == (r2.confidence, r2.message, r2.inliers, r2.matches)
+    assert r1.verification == r2.verification and r1.keypoints == r2.keypoints[::-1]
+    assert {r1.details.pop("reference"), r2.details.pop("reference")} == {"a", "b"} and r1.details == r2.details
+    assert np.array_equal(r1.inlier_xy, r2.inlier_xy[:, ::-1])
+    if r1.success:
+        assert np.allclose(r1.metric_transform.params @ r2.metric_transform.params, np.eye(3), atol=1e-9)
+    # The same with the maps' features given (as merge gives them).
+    from gridmerge.align import AlignOptions, default_extractor
+
+    ext = default_extractor(AlignOptions())
+    fa, fb = ext(a), ext(b)
+    r3 = align(b, a, rng=0, features=(fb, fa))
+    assert _inverse_of(r1, r3) and r3.confidence == r1.confidence
+
+
+def test_the_reference_can_be_the_first_map():
+    """``reference="a"`` searches with a as the reference in either order (the order of
+    the maps may then change the outcome); anything else is refused."""
+    from gridmerge.errors import GridMergeError
+
+    a, b, _ = samples.table1_pair(0)
+    r1, r2 = align(a, b, rng=0, reference="a"), align(b, a, rng=0, reference="a")
+    assert r1.success and r2.success and r1.details["reference"] == r2.details["reference"] == "a"
+    with pytest.raises(GridMergeError, match="unknown reference"):
+        align(a, b, reference="b")
 
 
 @pytest.mark.parametrize("method", ["hybrid", "sift"])
@@ -636,16 +705,18 @@ def test_a_refined_pose_is_polished_onto_the_walls_at_the_maps_scale_only(monkey
 @pytest.mark.shared
 def test_polishing_on_the_walls_merges_a_noisy_pair_at_another_resolution(shared_data, monkeypatch):
     # Simulated pair 2 of seed 1 (hard tier: b at 0.7 of a's cell size, 12 % spurious and
-    # missed hits, 25 % overlap): the refinement of the right candidate stops 3 px off,
-    # where the thin walls agree on 22 %; polished on the walls, 0.8 px.
+    # missed hits, 25 % overlap), searched from a's side: the refinement of the right
+    # candidate stops 3 px off, where the thin walls agree on 22 %; polished on the
+    # walls, 0.8 px. (By default b, the larger map, is the reference, and from its side
+    # the right pose is not found: the pair is declined.)
     from gridmerge.bench import datasets
 
     case = datasets.simulated(n=60, seed=1, data_dir=shared_data)[2]
-    r = align(case.a, case.b, rng=0)
+    r = align(case.a, case.b, rng=0, reference="a")
     assert r.success, r.message
     assert corner_error(r.transform, case.truth, case.b.shape) < 2.0
     monkeypatch.setattr(importlib.import_module("gridmerge.align")._Judge, "polished", lambda self, t, score: (score(t), t))
-    assert not align(case.a, case.b, rng=0).success
+    assert not align(case.a, case.b, rng=0, reference="a").success
 
 
 @pytest.mark.shared
@@ -677,10 +748,10 @@ def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
     a, b = fleet.maps[5], fleet.maps[6]
     assert not align(a, b, rng=0).success
     monkeypatch.setattr(align_module, "_POLISH_REACH", 30.0)
-    r = align(a, b, rng=0, one_sided_confidence=None)
+    r = align(a, b, rng=0, reference="a", one_sided_confidence=None)
     assert r.success and corner_error(r.transform, fleet.relative(5, 6), b.shape) > 100
-    r = align(a, b, rng=0)
-    assert not r.success and "found from a's side only" in r.message
+    r = align(a, b, rng=0, reference="a")
+    assert not r.success and "found from one map's side only" in r.message
 
 
 def _one_side(transform, confidence, source="walls"):
@@ -731,7 +802,7 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
         assert est.details["other_side"]["same_pose"] and est.details["other_side"]["moved_px"] == pytest.approx(5.0, abs=0.5)
     else:
         assert est.transform is ours and est.confidence == 0.6
-        assert est.one_sided.startswith("declined: found from a's side only") and "needs confidence 0.8" in est.one_sided
+        assert est.one_sided.startswith("declined: found from one map's side only") and "needs confidence 0.8" in est.one_sided
         assert ("no pose" in est.one_sided) == (other_conf is None)
     # Sure enough from one side, or asked to search from a's side only: one search.
     calls.clear()
@@ -776,7 +847,7 @@ def test_align_takes_the_surer_side_or_declines_a_one_sided_pose(monkeypatch, b_
         assert r.success and r.confidence > 0.8 and r.details["other_side"] == {**r.details["other_side"], "taken": True, "same_pose": True}
     else:
         assert not r.success and r.confidence == 0.7
-        assert r.message.startswith("declined: found from a's side only (from b's side the search finds no pose)")
+        assert r.message.startswith("declined: found from one map's side only (from the other's the search finds no pose)")
     calls.clear()
     assert align(a, b, rng=0, one_sided_confidence=None).success and len(calls) == 1
 
@@ -785,15 +856,18 @@ def test_align_takes_the_surer_side_or_declines_a_one_sided_pose(monkeypatch, b_
 def test_two_buildings_fit_from_one_side_only_are_declined(shared_data):
     """HIH_04 - E5_12: the apartment laid into the office's open space at confidence 0.75
     from the apartment's side; from the office's side the best pose lies over 200 px away.
-    Declined as one-sided; merged when searched from one side only."""
+    Declined as one-sided; merged when searched from the apartment's side only. (By
+    default the search takes the office, the larger map, as its reference, and its pose
+    is declined anyway.)"""
     from gridmerge.io import load_map
 
     folder = shared_data / "halmstad"
     a, b = load_map(folder / "HIH" / "HIH_04.png"), load_map(folder / "E5" / "E5_12.png")
-    r = align(a, b, rng=0)
-    assert not r.success and "found from a's side only" in r.message
+    r = align(a, b, rng=0, reference="a")
+    assert not r.success and "found from one map's side only" in r.message
     assert r.details["other_side"]["moved_px"] > 100 and not r.details["other_side"]["same_pose"]
-    assert align(a, b, rng=0, one_sided_confidence=None).success
+    assert align(a, b, rng=0, reference="a", one_sided_confidence=None).success
+    assert not align(a, b, rng=0).success and not align(b, a, rng=0).success
 
 
 @pytest.mark.shared
@@ -801,13 +875,15 @@ def test_two_buildings_fit_from_one_side_only_are_declined(shared_data):
 def test_real_maps_merged_on_a_pose_the_blurred_maps_keypoints_give(shared_data, a_name, b_name):
     """Two E5 pairs whose right pose none of the grey levels' keypoint matches or wall
     correlations proposes (declined at 0.30 and 0.00): the keypoints of the maps drawn
-    blurred propose it, and it wins. Within the protocol; declined without the second look."""
+    blurred propose it, and it wins. Within the protocol; declined without the second look.
+    Searched from a's side (E5_12 is the larger map of the second pair: from its side,
+    by default, the pair is declined)."""
     pair, a, b = _e5_pair(shared_data, a_name, b_name)
-    r = align(a, b, rng=0)
+    r = align(a, b, rng=0, reference="a")
     assert r.success, r.message
     assert r.details["source"] == "keypoints (second look)" and r.details["second_look"]["hypotheses"] > 0
     assert _within_protocol(r.transform, pair)
-    assert not align(a, b, rng=0, second_look=0).success
+    assert not align(a, b, rng=0, reference="a", second_look=0).success
 
 
 @pytest.mark.shared
