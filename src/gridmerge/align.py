@@ -178,8 +178,9 @@ class AlignOptions:
         ``max_scale``, for maps whose resolutions are unknown or wrong (CLI
         ``--any-scale``).
     one_sided_confidence : float or None
-        ``"hybrid"``: a pose found with a confidence below this is sought again from b's
-        side (b as the reference, a aligned onto it). When that search's pose is the same
+        ``"hybrid"``: a pose found with a confidence below this is sought again from the
+        other map's side (that map as the reference; first the search takes the one
+        :attr:`reference` names). When that search's pose is the same
         merge (it moves the part of b the two maps share by less than 40 px, median; maps
         that bend leave the two sides' poses of one merge up to 34 px apart, Halmstad E5),
         the pair takes the more confident of the two, with its confidence. When it is
@@ -187,11 +188,13 @@ class AlignOptions:
         confidence. Maps of different places fit by chance from one side only: the four
         Halmstad cross-building pairs that one search merged (confidence 0.56-0.75) are
         fit 110-550 px away from the other side, and none of the 56 is merged now (2
-        with the maps swapped, at 0.83 and 0.99). Most right poses of real pairs are
+        were with the maps swapped, at 0.83 and 0.99, until :attr:`reference` made the
+        order irrelevant). Most right poses of real pairs are
         found from both sides; two Halmstad ones found from one side only, at 0.57 and
         0.67, are declined (docs/benchmarks.md, ninth session). Pairs declined anyway
         whose best pose shares under 10 % of the smaller map are not sought again.
-        ``None`` searches from a's side only: pairs below this take half the time. CLI
+        ``None`` searches from the reference's side only: pairs below this take half the
+        time. CLI
         ``--one-sided-confidence``.
         :func:`gridmerge.merge` with three maps or more searches its pairs from one side
         and, after placing the maps, searches from both sides the alignments that lie on
