@@ -468,9 +468,9 @@ def test_a_room_slid_along_a_wall_is_nudged_to_the_truth(shared_data):
 
     case = datasets.simulated(n=60, seed=1, data_dir=shared_data)[52]
     for reference in ("larger", "a"):
-        r = align(case.a, case.b, rng=0, reference=reference)
+        r = align(case.a, case.b, rng=0, search_from=reference)
         assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
-    assert r.details["reference"] == "a" and align(case.a, case.b, rng=0).details["reference"] == "b"
+    assert r.details["searched_from"] == "a" and align(case.a, case.b, rng=0).details["searched_from"] == "b"
 
 
 def _inverse_of(r1, r2) -> bool:
@@ -495,7 +495,7 @@ def test_swapping_the_maps_inverts_the_transform_and_keeps_the_decision(pair):
     assert _inverse_of(r1, r2)
     assert (r1.confidence, r1.message, r1.inliers, r1.matches) == (r2.confidence, r2.message, r2.inliers, r2.matches)
     assert r1.verification == r2.verification and r1.keypoints == r2.keypoints[::-1]
-    assert {r1.details.pop("reference"), r2.details.pop("reference")} == {"a", "b"} and r1.details == r2.details
+    assert {r1.details.pop("searched_from"), r2.details.pop("searched_from")} == {"a", "b"} and r1.details == r2.details
     assert np.array_equal(r1.inlier_xy, r2.inlier_xy[:, ::-1])
     if r1.success:
         assert np.allclose(r1.metric_transform.params @ r2.metric_transform.params, np.eye(3), atol=1e-9)
@@ -509,15 +509,15 @@ def test_swapping_the_maps_inverts_the_transform_and_keeps_the_decision(pair):
 
 
 def test_the_reference_can_be_the_first_map():
-    """``reference="a"`` searches with a as the reference in either order (the order of
+    """``search_from="a"`` searches with a as the reference in either order (the order of
     the maps may then change the outcome); anything else is refused."""
     from gridmerge.errors import GridMergeError
 
     a, b, _ = samples.table1_pair(0)
-    r1, r2 = align(a, b, rng=0, reference="a"), align(b, a, rng=0, reference="a")
-    assert r1.success and r2.success and r1.details["reference"] == r2.details["reference"] == "a"
-    with pytest.raises(GridMergeError, match="unknown reference"):
-        align(a, b, reference="b")
+    r1, r2 = align(a, b, rng=0, search_from="a"), align(b, a, rng=0, search_from="a")
+    assert r1.success and r2.success and r1.details["searched_from"] == r2.details["searched_from"] == "a"
+    with pytest.raises(GridMergeError, match="unknown search_from"):
+        align(a, b, search_from="b")
 
 
 @pytest.mark.parametrize("method", ["hybrid", "sift"])
@@ -712,11 +712,11 @@ def test_polishing_on_the_walls_merges_a_noisy_pair_at_another_resolution(shared
     from gridmerge.bench import datasets
 
     case = datasets.simulated(n=60, seed=1, data_dir=shared_data)[2]
-    r = align(case.a, case.b, rng=0, reference="a")
+    r = align(case.a, case.b, rng=0, search_from="a")
     assert r.success, r.message
     assert corner_error(r.transform, case.truth, case.b.shape) < 2.0
     monkeypatch.setattr(importlib.import_module("gridmerge.align")._Judge, "polished", lambda self, t, score: (score(t), t))
-    assert not align(case.a, case.b, rng=0, reference="a").success
+    assert not align(case.a, case.b, rng=0, search_from="a").success
 
 
 @pytest.mark.shared
@@ -748,9 +748,9 @@ def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
     a, b = fleet.maps[5], fleet.maps[6]
     assert not align(a, b, rng=0).success
     monkeypatch.setattr(align_module, "_POLISH_REACH", 30.0)
-    r = align(a, b, rng=0, reference="a", one_sided_confidence=None)
+    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None)
     assert r.success and corner_error(r.transform, fleet.relative(5, 6), b.shape) > 100
-    r = align(a, b, rng=0, reference="a")
+    r = align(a, b, rng=0, search_from="a")
     assert not r.success and "found from one map's side only" in r.message
 
 
@@ -863,10 +863,10 @@ def test_two_buildings_fit_from_one_side_only_are_declined(shared_data):
 
     folder = shared_data / "halmstad"
     a, b = load_map(folder / "HIH" / "HIH_04.png"), load_map(folder / "E5" / "E5_12.png")
-    r = align(a, b, rng=0, reference="a")
+    r = align(a, b, rng=0, search_from="a")
     assert not r.success and "found from one map's side only" in r.message
     assert r.details["other_side"]["moved_px"] > 100 and not r.details["other_side"]["same_pose"]
-    assert align(a, b, rng=0, reference="a", one_sided_confidence=None).success
+    assert align(a, b, rng=0, search_from="a", one_sided_confidence=None).success
     assert not align(a, b, rng=0).success and not align(b, a, rng=0).success
 
 
@@ -879,11 +879,11 @@ def test_real_maps_merged_on_a_pose_the_blurred_maps_keypoints_give(shared_data,
     Searched from a's side (E5_12 is the larger map of the second pair: from its side,
     by default, the pair is declined)."""
     pair, a, b = _e5_pair(shared_data, a_name, b_name)
-    r = align(a, b, rng=0, reference="a")
+    r = align(a, b, rng=0, search_from="a")
     assert r.success, r.message
     assert r.details["source"] == "keypoints (second look)" and r.details["second_look"]["hypotheses"] > 0
     assert _within_protocol(r.transform, pair)
-    assert not align(a, b, rng=0, reference="a", second_look=0).success
+    assert not align(a, b, rng=0, search_from="a", second_look=0).success
 
 
 @pytest.mark.shared

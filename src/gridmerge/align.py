@@ -40,7 +40,7 @@ Methods
     the maps for scoring and refinement while the keypoints are matched, and verifies
     each settled pose while its rivals are sought.
     The search takes the map that covers more ground as its reference, whichever order
-    the maps come in (``AlignOptions.reference``): swapping the maps inverts the
+    the maps come in (``AlignOptions.search_from``): swapping the maps inverts the
     transform and keeps the decision.
 ``"sift"``
     The keypoint candidates alone, verified and refined the same way.
@@ -180,7 +180,7 @@ class AlignOptions:
     one_sided_confidence : float or None
         ``"hybrid"``: a pose found with a confidence below this is sought again from the
         other map's side (that map as the reference; first the search takes the one
-        :attr:`reference` names). When that search's pose is the same
+        :attr:`search_from` names). When that search's pose is the same
         merge (it moves the part of b the two maps share by less than 40 px, median; maps
         that bend leave the two sides' poses of one merge up to 34 px apart, Halmstad E5),
         the pair takes the more confident of the two, with its confidence. When it is
@@ -188,7 +188,7 @@ class AlignOptions:
         confidence. Maps of different places fit by chance from one side only: the four
         Halmstad cross-building pairs that one search merged (confidence 0.56-0.75) are
         fit 110-550 px away from the other side, and none of the 56 is merged now (2
-        were with the maps swapped, at 0.83 and 0.99, until :attr:`reference` made the
+        were with the maps swapped, at 0.83 and 0.99, until :attr:`search_from` made the
         order irrelevant). Most right poses of real pairs are
         found from both sides; two Halmstad ones found from one side only, at 0.57 and
         0.67, are declined (docs/benchmarks.md, ninth session). Pairs declined anyway
@@ -199,12 +199,12 @@ class AlignOptions:
         :func:`gridmerge.merge` with three maps or more searches its pairs from one side
         and, after placing the maps, searches from both sides the alignments that lie on
         no loop of the map graph (a loop checks the others).
-    reference : {"larger", "a"}
+    search_from : {"larger", "a"}
         Which map the search takes as its reference, for the methods that may choose
         (:attr:`Method.order_free`: ``"hybrid"``). ``"larger"`` (default): the map with
         more known area (square metres; ties broken by the maps' cells), whichever order
         they come in, so ``align(b, a)`` gives ``align(a, b)``'s decision with the
-        transform inverted; ``result.details["reference"]`` says which map it was, and
+        transform inverted; ``result.details["searched_from"]`` says which map it was, and
         the ``verification`` is counted in that map's cells. The search's steps are not
         symmetric (which map's keypoints seek partners, which map slides over the other),
         so with ``"a"`` the order of the maps can change the outcome: 5 of the 97
@@ -259,7 +259,7 @@ class AlignOptions:
     one_sided_confidence: float | None = 0.8
     wall_led: bool = True
     second_look: float = 1.5
-    reference: str = "larger"
+    search_from: str = "larger"
 
 
 #: :class:`AlignOptions` fields for maps whose resolutions are unknown or wrong (a
@@ -299,7 +299,7 @@ class AlignResult:
         Wall time of the alignment.
     verification : Verification or None
         The agreement the decision was made on, counted in the reference map's cells
-        (``details["reference"]``: ``"a"`` or ``"b"``, for the order-free methods).
+        (``details["searched_from"]``: ``"a"`` or ``"b"``, for the order-free methods).
     inlier_xy : (K, 2, 2) float array
         Inlier correspondences ``[[xb, yb], [xa, ya]]`` (for plots).
     details : dict
@@ -500,7 +500,7 @@ class Method:
         :func:`gridmerge.merge` merges three maps or more (``"hybrid"``: the keypoints of
         the map drawn blurred, which most of a fleet's pairs ask for); ``None``: nothing.
     order_free : bool
-        ``True``: with ``AlignOptions.reference="larger"`` (the default), :func:`align`
+        ``True``: with ``AlignOptions.search_from="larger"`` (the default), :func:`align`
         searches with the map that covers more ground as the reference, whichever order
         the maps come in, so that ``align(b, a)`` is ``align(a, b)`` inverted
         (``"hybrid"``). ``False``: the search takes a as the reference (the baselines, as
@@ -1442,7 +1442,7 @@ def align(
     a, b : OccupancyGrid
         The maps; the result places b in a's frame. The default method searches with
         the larger map as its reference whichever order they come in
-        (:attr:`AlignOptions.reference`), so swapping them gives the inverse transform
+        (:attr:`AlignOptions.search_from`), so swapping them gives the inverse transform
         and the same decision.
     method : str
         ``"hybrid"`` (default), ``"sift"``, ``"ransac"``, ``"paper"`` or a registered
@@ -1465,17 +1465,17 @@ def align(
     if method not in METHODS:
         raise GridMergeError(f"unknown alignment method {method!r} (use one of {', '.join(METHODS)})")
     opts = replace(options or AlignOptions(), **overrides)
-    if opts.reference not in ("larger", "a"):
-        raise GridMergeError(f"unknown reference {opts.reference!r} (use 'larger' or 'a')")
+    if opts.search_from not in ("larger", "a"):
+        raise GridMergeError(f"unknown search_from {opts.search_from!r} (use 'larger' or 'a')")
     t0 = time.perf_counter()
     spec = METHODS[method]
-    if spec.order_free and opts.reference == "larger":
+    if spec.order_free and opts.search_from == "larger":
         if not reference_first(a, b):
             # b is the reference: its search, inverted.
-            swapped = align(b, a, method=method, options=replace(opts, reference="a"), rng=rng,
+            swapped = align(b, a, method=method, options=replace(opts, search_from="a"), rng=rng,
                             features=None if features is None else (features[1], features[0]), extractor=extractor)
             return _inverted(swapped, a, b, time.perf_counter() - t0)
-        opts = replace(opts, reference="a")
+        opts = replace(opts, search_from="a")
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
@@ -1512,7 +1512,7 @@ def align(
     success = est.transform is not None and not message
     details = dict(est.details)
     if spec.order_free:
-        details["reference"] = "a"
+        details["searched_from"] = "a"
     details["features_capped"] = bool(fa.capped or fb.capped)
     inlier_xy = np.stack([est.src[est.inliers], est.dst[est.inliers]], axis=1) if n_inl else np.zeros((0, 2, 2))
     return AlignResult(
@@ -1535,7 +1535,7 @@ def align(
 
 
 def reference_first(a: OccupancyGrid, b: OccupancyGrid) -> bool:
-    """Whether ``a`` is the reference of an order-free search (``AlignOptions.reference``
+    """Whether ``a`` is the reference of an order-free search (``AlignOptions.search_from``
     ``"larger"``): the map with more known area (square metres), then with more known
     cells, more occupied cells, more rows and columns; between maps equal in all of
     these, the one whose cells' bytes come first. ``reference_first(a, b)`` and
@@ -1572,7 +1572,7 @@ def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: flo
         keypoints=(r.keypoints[1], r.keypoints[0]),
         elapsed_s=elapsed_s,
         inlier_xy=r.inlier_xy[:, ::-1].copy(),
-        details={**r.details, "reference": "b"},
+        details={**r.details, "searched_from": "b"},
     )
 
 
