@@ -508,6 +508,25 @@ def test_swapping_the_maps_inverts_the_transform_and_keeps_the_decision(pair):
     assert _inverse_of(r1, r3) and r3.confidence == r1.confidence
 
 
+def test_the_larger_map_is_the_reference_whatever_the_order():
+    """By known area first (square metres: a coarser map covers more per cell), then by
+    cells; maps equal in all of those by their bytes, so exactly one of two different
+    maps is the reference."""
+    from gridmerge.align import reference_first
+
+    fine = OccupancyGrid(np.zeros((10, 10)), resolution=0.05)
+    coarse = OccupancyGrid(np.zeros((6, 6)), resolution=0.1)  # 36 cells, but 0.36 m2 against 0.25
+    assert reference_first(coarse, fine) and not reference_first(fine, coarse)
+    one, other = np.zeros((4, 4)), np.zeros((4, 4))
+    one[0, 0] = other[3, 3] = 1.0
+    g1, g2 = OccupancyGrid(one), OccupancyGrid(other)
+    assert reference_first(g1, g2) != reference_first(g2, g1)
+    assert reference_first(g1, OccupancyGrid(one.copy()))
+    partly = one.copy()
+    partly[2, :] = np.nan
+    assert reference_first(g1, OccupancyGrid(partly)) and not reference_first(OccupancyGrid(partly), g1)
+
+
 def test_the_reference_can_be_the_first_map():
     """``search_from="a"`` searches with a as the reference in either order (the order of
     the maps may then change the outcome); anything else is refused."""
