@@ -1107,7 +1107,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         full_wall = _full_wall(v)
         ratio, confidence = _judged(wall, runner_up, v)
         if confidence >= opts.keypoints_first and full_wall >= _SETTLED_WALL and ratio <= _SETTLED_RATIO:
-            inl = best.residuals(src, dst) < opts.residual_threshold
+            inl = _inliers(best, src, dst, opts)
             details = {
                 "source": kind,
                 "candidates": len(hyps),
@@ -1211,7 +1211,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
                 wall, best, kind, runner_up, v = second
                 ratio, confidence = ratio2, confidence2
             candidates = candidates + led
-    inl = best.residuals(src, dst) < opts.residual_threshold if len(src) else np.zeros(0, bool)
+    inl = _inliers(best, src, dst, opts)
     # The ambiguity is judged on the quick scores (all candidates have one), the walls on
     # the full verification of the winner.
     details.update({
@@ -1245,11 +1245,17 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
                                      "keypoint_evidence": details["keypoint_evidence"]}
             details.update(source=other_kind, keypoint_evidence=_evidence_details(*other_matched))
             best, v, matched, taken = t, vt, other_matched, True
-            inl = best.residuals(src, dst) < opts.residual_threshold if len(src) else np.zeros(0, bool)
+            inl = _inliers(best, src, dst, opts)
     if taken:
         details["confirmed_by"] = _confirmed_by(matched[0])
         return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched[2], matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+
+
+def _inliers(t: AffineTransform, src: np.ndarray, dst: np.ndarray, opts: AlignOptions) -> np.ndarray:
+    """``(N,)`` bool array: which matches ``(src, dst)`` pose ``t`` explains within
+    ``opts.residual_threshold``."""
+    return t.residuals(src, dst) < opts.residual_threshold if len(src) else np.zeros(0, bool)
 
 
 def _evidence_details(evidence: MatchEvidence, rival: float | None, confidence: float) -> dict:
@@ -1475,7 +1481,6 @@ def align(
             swapped = align(b, a, method=method, options=replace(opts, search_from="a"), rng=rng,
                             features=None if features is None else (features[1], features[0]), extractor=extractor)
             return _inverted(swapped, a, b, time.perf_counter() - t0)
-        opts = replace(opts, search_from="a")
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
