@@ -229,6 +229,16 @@ class AlignOptions:
         :attr:`feature_pixels` is lower). It costs about 0.1 s per 1585 x 1585 map, on
         the pairs that reach it; 0 skips it.
         (docs/benchmarks.md, thirteenth session, measures it.)
+    coarse_look : int
+        ``"hybrid"``: when the search declines, it searches again with keypoints detected
+        on at most this many pixels (instead of :attr:`feature_pixels`), and takes that
+        search's pose if it is accepted (``result.details["coarse_look"]`` tells). Real
+        maps' fragmentary walls and noise give other keypoints at another detection
+        resolution, and a pose the first keypoints missed may be among theirs: on the
+        Halmstad sensor pairs, 5 more of 97 merged (90), none wrongly, none of the 56
+        cross-building pairs (docs/benchmarks.md, sixteenth session). Pairs whose maps'
+        keypoint images are no larger than this (nothing would change) are not searched
+        again. Declined pairs take about twice the time; 0 never searches again.
     """
 
     ratio: float = 0.8
@@ -260,6 +270,7 @@ class AlignOptions:
     wall_led: bool = True
     second_look: float = 1.5
     search_from: str = "larger"
+    coarse_look: int = 200_000
 
 
 #: :class:`AlignOptions` fields for maps whose resolutions are unknown or wrong (a
@@ -505,6 +516,9 @@ class Method:
         the maps come in, so that ``align(b, a)`` is ``align(a, b)`` inverted
         (``"hybrid"``). ``False``: the search takes a as the reference (the baselines, as
         their authors wrote them).
+    coarse_look : bool
+        ``True``: a declined search is searched again with keypoints detected on fewer
+        pixels (:attr:`AlignOptions.coarse_look`; ``"hybrid"``).
     """
 
     name: str
@@ -514,6 +528,7 @@ class Method:
     description: str = ""
     prepare: Callable[[OccupancyGrid, Features, AlignOptions], Features] | None = None
     order_free: bool = False
+    coarse_look: bool = False
 
 
 def register_method(method: Method) -> Method:
@@ -715,6 +730,36 @@ def _look_twice(grid: OccupancyGrid, features: Features, opts: AlignOptions) -> 
         return features
     crop, offset = _working_map(grid)
     return replace(features, blurred=_shifted(_blurred_extractor(opts)(crop), offset))
+
+
+def _keypoint_image_pixels(grid: OccupancyGrid, margin: int) -> int:
+    """Pixels of the image the default extractor detects ``grid``'s keypoints in (its
+    known cells' bounding box plus ``margin``), before any reduction."""
+    box = grid.known_bounds(margin)
+    if box is None:
+        return 0
+    x0, y0, x1, y1 = box
+    return int((x1 - x0) * (y1 - y0))
+
+
+def _coarse_features(grid: OccupancyGrid, opts: AlignOptions) -> Features | None:
+    """``grid``'s keypoints as :attr:`AlignOptions.coarse_look`'s search finds them
+    (with their blurred ones), or ``None`` when that search would use the first ones."""
+    pixels = int(opts.coarse_look)
+    if pixels <= 0 or 0 < opts.feature_pixels <= pixels:
+        return None
+    ext = default_extractor(opts)
+    if _keypoint_image_pixels(grid, ext.margin) <= pixels:
+        return None
+    copts = replace(opts, feature_pixels=pixels, coarse_look=0)
+    return _look_twice(grid, default_extractor(copts)(grid), copts)
+
+
+def _prepare_hybrid(grid: OccupancyGrid, features: Features, opts: AlignOptions) -> Features:
+    """The hybrid method's :attr:`Method.prepare`: the map's blurred keypoints
+    (:attr:`AlignOptions.second_look`) and those of the coarser look
+    (:attr:`AlignOptions.coarse_look`), found ahead."""
+    return replace(_look_twice(grid, features, opts), coarse=_coarse_features(grid, opts))
 
 
 def _second_look_hypotheses(a: OccupancyGrid, b: OccupancyGrid, ga: Features, gb: Features, opts: AlignOptions) -> list:
@@ -1411,7 +1456,7 @@ def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 #: Alignment methods by name (see :class:`Method` and :func:`register_method`).
 METHODS: dict[str, Method] = {}
 register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined (default)",
-                       prepare=_look_twice, order_free=True))
+                       prepare=_prepare_hybrid, order_free=True, coarse_look=True))
 register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined"))
 register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
 register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
@@ -1520,7 +1565,7 @@ def align(
         details["searched_from"] = "a"
     details["features_capped"] = bool(fa.capped or fb.capped)
     inlier_xy = np.stack([est.src[est.inliers], est.dst[est.inliers]], axis=1) if n_inl else np.zeros((0, 2, 2))
-    return AlignResult(
+    result = AlignResult(
         success=success,
         transform=est.transform if success else None,
         candidate=est.transform,
@@ -1537,6 +1582,34 @@ def align(
         inlier_xy=inlier_xy,
         details=details,
     )
+    if not success and spec.coarse_look and extractor is None:
+        result = _coarse_look(result, a, b, fa, fb, method, opts, rng, t0)
+    return result
+
+
+def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: str, opts: AlignOptions, rng, t0: float) -> AlignResult:
+    """``first``, a declined alignment, searched again with keypoints detected on at
+    most ``opts.coarse_look`` pixels (:attr:`AlignOptions.coarse_look`): that search's
+    result if it is accepted, ``first`` otherwise; ``details["coarse_look"]`` tells."""
+    pixels = int(opts.coarse_look)
+    if pixels <= 0 or 0 < opts.feature_pixels <= pixels:
+        return first
+    margin = default_extractor(opts).margin
+    larger = [_keypoint_image_pixels(g, margin) > pixels for g in (a, b)]
+    if not any(larger):
+        return first  # the keypoints would be the same
+    # A map whose image is no larger keeps its keypoints; the others' are found ahead
+    # (merging many maps) or now.
+    coarse = tuple(f.coarse if big else f for f, big in zip((fa, fb), larger))
+    second = align(a, b, method=method, options=replace(opts, feature_pixels=pixels, coarse_look=0, search_from="a"),
+                   rng=rng, features=coarse)
+    elapsed = time.perf_counter() - t0
+    if second.success:
+        note = {"pixels": pixels, "first_confidence": round(first.confidence, 4), "first_message": first.message}
+        return replace(second, elapsed_s=elapsed, message=second.message + " (second search, keypoints on fewer pixels)",
+                       details={**second.details, "coarse_look": note})
+    note = {"pixels": pixels, "confidence": round(second.confidence, 4), "message": second.message}
+    return replace(first, elapsed_s=elapsed, details={**first.details, "coarse_look": note})
 
 
 def reference_first(a: OccupancyGrid, b: OccupancyGrid) -> bool:
@@ -1732,7 +1805,7 @@ def full_to_crop(t: AffineTransform, oa: np.ndarray, ob: np.ndarray) -> AffineTr
 def _shifted(f: Features, offset: np.ndarray) -> Features:
     if not offset.any():
         return f
-    return replace(f, xy=f.xy + offset, blurred=None if f.blurred is None else _shifted(f.blurred, offset))
+    return replace(f, xy=f.xy + offset, blurred=None if f.blurred is None else _shifted(f.blurred, offset), coarse=None)
 
 
 def _confirmed_note(details: dict) -> str:
