@@ -940,3 +940,81 @@ def test_the_second_look_is_bounded_whatever_the_first_keypoints_may_use():
     tighter = _blurred_extractor(AlignOptions(max_keypoints=300, feature_pixels=100_000))
     assert (tighter.max_keypoints, tighter.work_pixels) == (300, 100_000)
     assert tighter.renderer.blur_sigma == 1.5
+
+
+def test_a_declined_pair_is_searched_again_with_coarser_keypoints(monkeypatch):
+    # The negative sample pair (two 0.3 M-pixel keypoint images) is declined; the second
+    # search, with keypoints detected on at most 200k pixels, is declined too and says so.
+    na, nb = samples.negative_pair(0)
+    r = align(na, nb, rng=0)
+    assert not r.success and r.transform is None
+    look = r.details["coarse_look"]
+    assert look["pixels"] == 200_000 and look["message"].startswith("declined") and 0.0 <= look["confidence"] < 0.5
+    # It searched with keypoints of its own, detected on fewer pixels.
+    align_module = importlib.import_module("gridmerge.align")
+    searched = []
+    real = align_module.align
+
+    def spy(a, b, **kw):
+        searched.append(kw.get("options"))
+        return real(a, b, **kw)
+
+    monkeypatch.setattr(align_module, "align", spy)
+    again = align_module._coarse_look(r, na, nb, *_plain_features(na, nb), "hybrid", align_module.AlignOptions(), 0, 0.0)
+    assert [o.feature_pixels for o in searched] == [200_000] and searched[0].coarse_look == 0
+    assert again.details["coarse_look"] == look and again.message == r.message
+    # 0 turns it off; maps whose keypoint images are no larger are not searched again.
+    assert "coarse_look" not in align(na, nb, rng=0, coarse_look=0).details
+    assert "coarse_look" not in align(na, nb, rng=0, coarse_look=400_000).details
+    # Nor is a pair that is accepted.
+    a, b, _ = samples.table1_pair(0)
+    assert "coarse_look" not in align(a, b, rng=0).details
+
+
+def _plain_features(a, b):
+    from gridmerge.align import default_extractor
+
+    return default_extractor()(a), default_extractor()(b)
+
+
+def test_the_coarser_keypoints_found_ahead_are_those_the_second_search_finds(monkeypatch):
+    # merge finds each map's coarser keypoints once (Method.prepare), with their blurred
+    # ones; align's second search then extracts nothing, and decides the same.
+    from gridmerge.align import METHODS, AlignOptions, default_extractor
+
+    a, b = samples.negative_pair(0)
+    opts = AlignOptions()
+    coarse = replace(opts, feature_pixels=opts.coarse_look, coarse_look=0)
+    fa, fb = (METHODS["hybrid"].prepare(g, default_extractor(opts)(g), opts) for g in (a, b))
+    for f, g in ((fa, a), (fb, b)):
+        found = default_extractor(coarse)(g)
+        np.testing.assert_array_equal(f.coarse.descriptors, found.descriptors)
+        assert f.coarse.blurred is not None and (len(f.coarse) != len(f) or not np.array_equal(f.coarse.xy, f.xy))
+    # A map whose keypoint image is no larger has none: the second search uses its own.
+    small = OccupancyGrid(a.data[:300, :300], resolution=a.resolution)
+    assert METHODS["hybrid"].prepare(small, default_extractor(opts)(small), opts).coarse is None
+    lazy = align(a, b, rng=0)
+    align_module = importlib.import_module("gridmerge.align")
+
+    def no_extraction(*args):
+        raise AssertionError("keypoints were found again")
+
+    monkeypatch.setattr(align_module, "_extract_both", no_extraction)
+    monkeypatch.setattr(align_module, "_blurred_extractor", no_extraction)
+    ahead = align(a, b, rng=0, features=(fa, fb))
+    assert (ahead.success, ahead.confidence, ahead.message, ahead.details) == (lazy.success, lazy.confidence, lazy.message, lazy.details)
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize("a_name, b_name", [("E5_03", "E5_11"), ("E5_10", "E5_13")])
+def test_real_maps_merged_by_the_search_with_coarser_keypoints(shared_data, a_name, b_name):
+    """Two E5 pairs declined by the search with keypoints on 400k pixels (confidence 0.38)
+    and merged within the protocol by the second one, on 200k, in either order."""
+    pair, a, b = _e5_pair(shared_data, a_name, b_name)
+    r = align(a, b, rng=0)
+    assert r.success, r.message
+    assert r.details["coarse_look"]["first_confidence"] < 0.5 and "fewer pixels" in r.message
+    assert _within_protocol(r.transform, pair)
+    swapped = align(b, a, rng=0)
+    assert swapped.success and np.allclose(swapped.transform.params, r.transform.inverse.params)
+    assert not align(a, b, rng=0, coarse_look=0).success
