@@ -681,7 +681,7 @@ def test_real_maps_that_bend_are_merged_at_the_same_merges_pose_the_matches_supp
     another part of the bending maps, 43 px from it at b's shared part and with walls
     agreeing nearly as well, agrees with 7 (significance 7.1): merged at that pose,
     within the data set's protocol. Without looking at the same merge's other poses,
-    declined."""
+    declined (by this search: the coarser look's keypoints find the pair too)."""
     pair, a, b = _e5_pair(shared_data, "E5_12", "E5_14")
     r = align(a, b, rng=0)
     assert r.success, r.message
@@ -689,7 +689,7 @@ def test_real_maps_that_bend_are_merged_at_the_same_merges_pose_the_matches_supp
     assert r.details["keypoint_evidence"]["significance"] > r.details["same_merge"]["keypoint_evidence"]["significance"]
     assert _within_protocol(r.transform, pair)
     monkeypatch.setattr(importlib.import_module("gridmerge.align")._Judge, "same_merge", lambda self, best: [])
-    assert not align(a, b, rng=0).success
+    assert not align(a, b, rng=0, coarse_look=0).success
 
 
 def test_a_refined_pose_is_polished_onto_the_walls_at_the_maps_scale_only(monkeypatch):
@@ -751,7 +751,7 @@ def test_polishing_on_the_walls_merges_real_maps_that_bend(shared_data, monkeypa
     assert _within_protocol(r.transform, pair)
     assert _within_protocol(align(a, b, rng=0).transform, pair)
     monkeypatch.setattr(importlib.import_module("gridmerge.align")._Judge, "polished", lambda self, t, score: (score(t), t))
-    assert not align(a, b, rng=0, one_sided_confidence=None).success
+    assert not align(a, b, rng=0, one_sided_confidence=None, coarse_look=0).success
 
 
 def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
@@ -859,7 +859,7 @@ def test_align_takes_the_surer_side_or_declines_a_one_sided_pose(monkeypatch, b_
         return real(judge, fa, fb)
 
     monkeypatch.setattr(align_module, "_hybrid_search", search)
-    r = align(a, b, rng=0)
+    r = align(a, b, rng=0, coarse_look=0)  # one search (from both sides), not the coarser look's
     assert len(calls) == 2 and calls[1].a.shape != calls[0].a.shape  # b's side: b is the reference
     assert corner_error(r.candidate, SimilarityTransform(truth), b.shape) < 1.0
     if b_side == "finds it":
@@ -894,7 +894,8 @@ def test_two_buildings_fit_from_one_side_only_are_declined(shared_data):
 def test_real_maps_merged_on_a_pose_the_blurred_maps_keypoints_give(shared_data, a_name, b_name):
     """Two E5 pairs whose right pose none of the grey levels' keypoint matches or wall
     correlations proposes (declined at 0.30 and 0.00): the keypoints of the maps drawn
-    blurred propose it, and it wins. Within the protocol; declined without the second look.
+    blurred propose it, and it wins. Within the protocol; declined without the second look
+    (and without the coarser look, whose keypoints find E5_06-E5_13 too).
     Searched from a's side (E5_12 is the larger map of the second pair: from its side,
     by default, the pair is declined)."""
     pair, a, b = _e5_pair(shared_data, a_name, b_name)
@@ -902,32 +903,34 @@ def test_real_maps_merged_on_a_pose_the_blurred_maps_keypoints_give(shared_data,
     assert r.success, r.message
     assert r.details["source"] == "keypoints (second look)" and r.details["second_look"]["hypotheses"] > 0
     assert _within_protocol(r.transform, pair)
-    assert not align(a, b, rng=0, search_from="a", second_look=0).success
+    assert not align(a, b, rng=0, search_from="a", second_look=0, coarse_look=0).success
 
 
 @pytest.mark.shared
 def test_the_second_look_merges_a_simulated_pair_sharing_few_walls(shared_data):
     # Simulated benchmark pair 8 (seed 0): 50-199 wall cells seen by both robots; the
-    # truth's walls agree on 92 %, but no candidate came near it before the second look.
+    # truth's walls agree on 92 %, but no candidate came near it before the second look
+    # (without it, the coarser look's search finds it too).
     from gridmerge.bench import datasets
 
     case = datasets.simulated(n=60, seed=0, data_dir=shared_data)[8]
     r = align(case.a, case.b, rng=0)
     assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
-    assert not align(case.a, case.b, rng=0, second_look=0).success
+    assert not align(case.a, case.b, rng=0, second_look=0, coarse_look=0).success
 
 
 @pytest.mark.shared
 def test_real_maps_merged_from_the_side_that_finds_them_surely(shared_data):
     """E5_06 - E5_12: from E5_06's side the right pose's walls agree on 34 % and its
     keypoint matches are weak (declined); from E5_12's side the same pose (2.5 px apart on
-    the shared part) is confirmed by its keypoint matches. Merged within the protocol."""
+    the shared part) is confirmed by its keypoint matches. Merged within the protocol.
+    From E5_06's side alone, declined (the coarser look's search finds it too)."""
     pair, a, b = _e5_pair(shared_data, "E5_06", "E5_12")
     r = align(a, b, rng=0)
     assert r.success, r.message
     assert r.details["other_side"]["taken"] and r.details["other_side"]["moved_px"] < 10
     assert _within_protocol(r.transform, pair)
-    assert not align(a, b, rng=0, one_sided_confidence=None).success
+    assert not align(a, b, rng=0, one_sided_confidence=None, coarse_look=0).success
 
 
 def test_the_second_look_is_bounded_whatever_the_first_keypoints_may_use():
