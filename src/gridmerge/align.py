@@ -742,16 +742,26 @@ def _keypoint_image_pixels(grid: OccupancyGrid, margin: int) -> int:
     return int((x1 - x0) * (y1 - y0))
 
 
+def _coarser(grid: OccupancyGrid, opts: AlignOptions) -> bool:
+    """Whether :attr:`AlignOptions.coarse_look`'s search detects ``grid``'s keypoints on
+    fewer pixels than the first search (otherwise it would find the same ones)."""
+    pixels = int(opts.coarse_look)
+    if pixels <= 0 or 0 < opts.feature_pixels <= pixels:
+        return False
+    return _keypoint_image_pixels(grid, default_extractor(opts).margin) > pixels
+
+
+def _coarse_options(opts: AlignOptions) -> AlignOptions:
+    """The options of :attr:`AlignOptions.coarse_look`'s search."""
+    return replace(opts, feature_pixels=int(opts.coarse_look), coarse_look=0)
+
+
 def _coarse_features(grid: OccupancyGrid, opts: AlignOptions) -> Features | None:
     """``grid``'s keypoints as :attr:`AlignOptions.coarse_look`'s search finds them
     (with their blurred ones), or ``None`` when that search would use the first ones."""
-    pixels = int(opts.coarse_look)
-    if pixels <= 0 or 0 < opts.feature_pixels <= pixels:
+    if not _coarser(grid, opts):
         return None
-    ext = default_extractor(opts)
-    if _keypoint_image_pixels(grid, ext.margin) <= pixels:
-        return None
-    copts = replace(opts, feature_pixels=pixels, coarse_look=0)
+    copts = _coarse_options(opts)
     return _look_twice(grid, default_extractor(copts)(grid), copts)
 
 
@@ -1591,19 +1601,15 @@ def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: s
     """``first``, a declined alignment, searched again with keypoints detected on at
     most ``opts.coarse_look`` pixels (:attr:`AlignOptions.coarse_look`): that search's
     result if it is accepted, ``first`` otherwise; ``details["coarse_look"]`` tells."""
-    pixels = int(opts.coarse_look)
-    if pixels <= 0 or 0 < opts.feature_pixels <= pixels:
-        return first
-    margin = default_extractor(opts).margin
-    larger = [_keypoint_image_pixels(g, margin) > pixels for g in (a, b)]
+    larger = [_coarser(g, opts) for g in (a, b)]
     if not any(larger):
         return first  # the keypoints would be the same
     # A map whose image is no larger keeps its keypoints; the others' are found ahead
     # (merging many maps) or now.
     coarse = tuple(f.coarse if big else f for f, big in zip((fa, fb), larger))
-    second = align(a, b, method=method, options=replace(opts, feature_pixels=pixels, coarse_look=0, search_from="a"),
-                   rng=rng, features=coarse)
+    second = align(a, b, method=method, options=replace(_coarse_options(opts), search_from="a"), rng=rng, features=coarse)
     elapsed = time.perf_counter() - t0
+    pixels = int(opts.coarse_look)
     if second.success:
         note = {"pixels": pixels, "first_confidence": round(first.confidence, 4), "first_message": first.message}
         return replace(second, elapsed_s=elapsed, message=second.message + " (second search, keypoints on fewer pixels)",
