@@ -237,8 +237,10 @@ class AlignOptions:
         resolution, and a pose the first keypoints missed may be among theirs: on the
         Halmstad sensor pairs, 5 more of 97 merged (90), none wrongly, none of the 56
         cross-building pairs (docs/benchmarks.md, sixteenth session). Pairs whose maps'
-        keypoint images are no larger than this (nothing would change) are not searched
-        again. Declined pairs take about twice the time; 0 never searches again.
+        keypoint images are no larger than this (nothing would change), and pairs whose
+        declined pose shares less than 10 % of the smaller map (maps that do not overlap,
+        most pairs of a fleet), are not searched again. Declined pairs take about twice
+        the time; 0 never searches again.
     """
 
     ratio: float = 0.8
@@ -1592,7 +1594,9 @@ def align(
         inlier_xy=inlier_xy,
         details=details,
     )
-    if not success and spec.coarse_look and extractor is None:
+    if not success and spec.coarse_look and extractor is None and v is not None and v.overlap_fraction >= _HOPELESS_SHARED:
+        # Searched again, unless the pose found shares too little for any pose of these
+        # maps to be taken (most pairs of a fleet, which do not overlap).
         result = _coarse_look(result, a, b, fa, fb, method, opts, rng, t0)
     return result
 
@@ -1679,7 +1683,8 @@ _WIDE_HYPOTHESES = 20
 _WALL_LED_MIN_SHARED = 0.15
 #: Poses sharing less than this (before refinement, which moves them a little) cannot
 #: reach ``_WALL_LED_MIN_SHARED``: the wall-led search does not refine them, and a
-#: declined pose sharing less is not sought again from b's side.
+#: declined pose sharing less is not sought again from b's side, nor with coarser
+#: keypoints (:attr:`AlignOptions.coarse_look`).
 _HOPELESS_SHARED = _WALL_LED_MIN_SHARED - 0.05
 #: ... and no clearly different pose may score above this share of its score.
 _WALL_LED_RATIO = 0.8
