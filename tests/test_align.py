@@ -980,34 +980,6 @@ def _plain_features(a, b):
     return default_extractor()(a), default_extractor()(b)
 
 
-def test_the_coarser_keypoints_found_ahead_are_those_the_second_search_finds(monkeypatch):
-    # merge finds each map's coarser keypoints once (Method.prepare), with their blurred
-    # ones; align's second search then extracts nothing, and decides the same.
-    from gridmerge.align import METHODS, AlignOptions, default_extractor
-
-    a, b = samples.negative_pair(0)
-    opts = AlignOptions()
-    coarse = replace(opts, feature_pixels=opts.coarse_look, coarse_look=0)
-    fa, fb = (METHODS["hybrid"].prepare(g, default_extractor(opts)(g), opts) for g in (a, b))
-    for f, g in ((fa, a), (fb, b)):
-        found = default_extractor(coarse)(g)
-        np.testing.assert_array_equal(f.coarse.descriptors, found.descriptors)
-        assert f.coarse.blurred is not None and (len(f.coarse) != len(f) or not np.array_equal(f.coarse.xy, f.xy))
-    # A map whose keypoint image is no larger has none: the second search uses its own.
-    small = OccupancyGrid(a.data[:300, :300], resolution=a.resolution)
-    assert METHODS["hybrid"].prepare(small, default_extractor(opts)(small), opts).coarse is None
-    lazy = align(a, b, rng=0)
-    align_module = importlib.import_module("gridmerge.align")
-
-    def no_extraction(*args):
-        raise AssertionError("keypoints were found again")
-
-    monkeypatch.setattr(align_module, "_extract_both", no_extraction)
-    monkeypatch.setattr(align_module, "_blurred_extractor", no_extraction)
-    ahead = align(a, b, rng=0, features=(fa, fb))
-    assert (ahead.success, ahead.confidence, ahead.message, ahead.details) == (lazy.success, lazy.confidence, lazy.message, lazy.details)
-
-
 @pytest.mark.shared
 @pytest.mark.parametrize("a_name, b_name", [("E5_03", "E5_11"), ("E5_10", "E5_13")])
 def test_real_maps_merged_by_the_search_with_coarser_keypoints(shared_data, a_name, b_name):

@@ -141,3 +141,33 @@ def test_three_maps_or_more_get_their_blurred_keypoints_once_ahead(pair, monkeyp
     # Methods that prepare nothing get their keypoints alone.
     job = merge_module._FeatureJob(a, "sift", gridmerge.AlignOptions(), None, True)
     assert run(job).blurred is None
+
+
+def test_a_fleet_searches_again_with_coarser_keypoints_only_the_pairs_of_maps_left_out(pair, monkeypatch):
+    # A fleet's many pairs that do not overlap are not searched twice: its first searches
+    # do without the coarser look (AlignOptions.coarse_look), and only the declined pairs of
+    # a map the placement leaves out get it, from their first search's result.
+    align_module = importlib.import_module("gridmerge.align")
+    merge_module = importlib.import_module("gridmerge.merge")
+    a, b, _ = pair
+    _, other = samples.negative_pair(0)  # another building, 0.3 M pixels of keypoint image
+    looked = []
+    real = align_module._coarse_look
+
+    def spy(first, *args):
+        looked.append(first)
+        return real(first, *args)
+
+    monkeypatch.setattr(merge_module, "_coarse_look", spy)
+    m = merge([a, b, other])
+    assert m.success and len(m.unplaced) == 1
+    searched = {(p.i, p.j): p.result for p in m.pairs}
+    assert searched[(0, 1)].success and "coarse_look" not in searched[(0, 1)].details
+    assert len(looked) == 2 and all(not r.success for r in looked)
+    for k in ((0, 2), (1, 2)):
+        r = searched[k]
+        assert not r.success and r.details["coarse_look"]["pixels"] == 200_000
+    # Off: nothing searched again.
+    looked.clear()
+    off = merge([a, b, other], options=gridmerge.AlignOptions(coarse_look=0))
+    assert not looked and all("coarse_look" not in p.result.details for p in off.pairs)

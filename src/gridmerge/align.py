@@ -758,22 +758,6 @@ def _coarse_options(opts: AlignOptions) -> AlignOptions:
     return replace(opts, feature_pixels=int(opts.coarse_look), coarse_look=0)
 
 
-def _coarse_features(grid: OccupancyGrid, opts: AlignOptions) -> Features | None:
-    """``grid``'s keypoints as :attr:`AlignOptions.coarse_look`'s search finds them
-    (with their blurred ones), or ``None`` when that search would use the first ones."""
-    if not _coarser(grid, opts):
-        return None
-    copts = _coarse_options(opts)
-    return _look_twice(grid, default_extractor(copts)(grid), copts)
-
-
-def _prepare_hybrid(grid: OccupancyGrid, features: Features, opts: AlignOptions) -> Features:
-    """The hybrid method's :attr:`Method.prepare`: the map's blurred keypoints
-    (:attr:`AlignOptions.second_look`) and those of the coarser look
-    (:attr:`AlignOptions.coarse_look`), found ahead."""
-    return replace(_look_twice(grid, features, opts), coarse=_coarse_features(grid, opts))
-
-
 def _second_look_hypotheses(a: OccupancyGrid, b: OccupancyGrid, ga: Features, gb: Features, opts: AlignOptions) -> list:
     """The pose hypotheses of the blurred keypoints ``ga``, ``gb`` whose scale the maps'
     resolutions allow (all when any scale is)."""
@@ -1468,7 +1452,7 @@ def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 #: Alignment methods by name (see :class:`Method` and :func:`register_method`).
 METHODS: dict[str, Method] = {}
 register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined (default)",
-                       prepare=_prepare_hybrid, order_free=True, coarse_look=True))
+                       prepare=_look_twice, order_free=True, coarse_look=True))
 register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined"))
 register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
 register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
@@ -1594,9 +1578,7 @@ def align(
         inlier_xy=inlier_xy,
         details=details,
     )
-    if not success and spec.coarse_look and extractor is None and v is not None and v.overlap_fraction >= _HOPELESS_SHARED:
-        # Searched again, unless the pose found shares too little for any pose of these
-        # maps to be taken (most pairs of a fleet, which do not overlap).
+    if not success and spec.coarse_look and extractor is None:
         result = _coarse_look(result, a, b, fa, fb, method, opts, rng, t0)
     return result
 
@@ -1604,14 +1586,22 @@ def align(
 def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: str, opts: AlignOptions, rng, t0: float) -> AlignResult:
     """``first``, a declined alignment, searched again with keypoints detected on at
     most ``opts.coarse_look`` pixels (:attr:`AlignOptions.coarse_look`): that search's
-    result if it is accepted, ``first`` otherwise; ``details["coarse_look"]`` tells."""
+    result if it is accepted, ``first`` otherwise; ``details["coarse_look"]`` tells.
+    ``fa``, ``fb``: the maps' first keypoints (kept for a map whose keypoints would not
+    change). Not searched again when ``first``'s pose shares too little for any pose of
+    these maps to be taken (most pairs of a fleet, which do not overlap), or when
+    neither map's keypoints would change."""
+    v = first.verification
+    if first.success or v is None or not v.overlap_fraction >= _HOPELESS_SHARED:
+        return first
     larger = [_coarser(g, opts) for g in (a, b)]
     if not any(larger):
         return first  # the keypoints would be the same
-    # A map whose image is no larger keeps its keypoints; the others' are found ahead
-    # (merging many maps) or now.
-    coarse = tuple(f.coarse if big else f for f, big in zip((fa, fb), larger))
-    second = align(a, b, method=method, options=replace(_coarse_options(opts), search_from="a"), rng=rng, features=coarse)
+    # A map whose image is no larger keeps its keypoints; the others' are found anew.
+    coarse = tuple(None if big else f for f, big in zip((fa, fb), larger))
+    # The same reference as the first search (``search_from`` is "a" when this is that
+    # search's own reference's side; "larger" chooses it again).
+    second = align(a, b, method=method, options=_coarse_options(opts), rng=rng, features=coarse)
     elapsed = time.perf_counter() - t0
     pixels = int(opts.coarse_look)
     if second.success:
@@ -1816,7 +1806,7 @@ def full_to_crop(t: AffineTransform, oa: np.ndarray, ob: np.ndarray) -> AffineTr
 def _shifted(f: Features, offset: np.ndarray) -> Features:
     if not offset.any():
         return f
-    return replace(f, xy=f.xy + offset, blurred=None if f.blurred is None else _shifted(f.blurred, offset), coarse=None)
+    return replace(f, xy=f.xy + offset, blurred=None if f.blurred is None else _shifted(f.blurred, offset))
 
 
 def _confirmed_note(details: dict) -> str:

@@ -82,11 +82,6 @@ class Features:
         Keypoints of the same map drawn blurred, found ahead for the ``"hybrid"`` method's
         second look (:attr:`gridmerge.align.AlignOptions.second_look`) when many maps
         are merged; ``None``: found when needed.
-    coarse : Features or None
-        Keypoints of the same map detected on fewer pixels (with their own blurred
-        ones), found ahead for the ``"hybrid"`` method's coarser look
-        (:attr:`gridmerge.align.AlignOptions.coarse_look`) when many maps are merged;
-        ``None``: found when needed, or the same as these.
     """
 
     xy: np.ndarray
@@ -97,7 +92,6 @@ class Features:
     binary: bool = False
     capped: bool = False
     blurred: "Features | None" = None
-    coarse: "Features | None" = None
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])

@@ -44,6 +44,7 @@ from .align import (
     METHODS,
     AlignOptions,
     AlignResult,
+    _coarse_look,
     _confirmed_by,
     _confirmed_note,
     _decline_reason,
@@ -412,9 +413,13 @@ class _PairJob:
     seed: int
     features: tuple
     prior: _Prior | None = None
+    first: AlignResult | None = None  # a declined search, to search again with coarser keypoints
 
 
 def _run_pair(job: _PairJob) -> AlignResult:
+    if job.first is not None:
+        fa, fb = job.features
+        return _coarse_look(job.first, job.a, job.b, fa, fb, job.method, job.options, job.seed, time.perf_counter())
     p = job.prior
     if p is not None:
         return reverify(job.a, job.b, p.transform, method=job.method, options=job.options, rng=job.seed,
@@ -839,16 +844,25 @@ class Merger:
         t = AffineTransform(np.linalg.solve(mi, mj))
         return _Prior(t, 0.0, min(self._pose_conf.get(ni, 0.0), self._pose_conf.get(nj, 0.0)), predicted=True)
 
-    def _job(self, i, j, names, feats, prior: _Prior | None = None, *, both_sides: bool = False) -> _PairJob:
+    def _job(self, i, j, names, feats, prior: _Prior | None = None, *, both_sides: bool = False,
+             first: AlignResult | None = None) -> _PairJob:
         """A pair's job. In a fleet of three maps or more a pair is searched from one side
         (``one_sided_confidence=None``): the map graph's loops check its alignments, and
         the alignments no loop checks are searched from both sides afterwards
-        (:meth:`_check_bridges`); ``both_sides`` asks for that second search."""
+        (:meth:`_check_bridges`); ``both_sides`` asks for that second search. Nor is a
+        declined pair searched again with coarser keypoints (``coarse_look``) then: only
+        the pairs of maps the placement leaves out are (``first``, their declined
+        search; :meth:`_look_coarser`)."""
         options = self.options
-        if not both_sides and len(self._maps) >= 3 and options.one_sided_confidence is not None:
+        if len(self._maps) >= 3 and first is None:
+            if not both_sides and options.one_sided_confidence is not None:
+                options = replace(options, one_sided_confidence=None)
+            if options.coarse_look:
+                options = replace(options, coarse_look=0)
+        elif first is not None and options.one_sided_confidence is not None:
             options = replace(options, one_sided_confidence=None)
         return _PairJob(self._maps[names[i]], self._maps[names[j]], self.method, options,
-                        _pair_seed(self._seed, self._digests[names[i]], self._digests[names[j]]), (feats[i], feats[j]), prior)
+                        _pair_seed(self._seed, self._digests[names[i]], self._digests[names[j]]), (feats[i], feats[j]), prior, first)
 
     def _store(self, names, i, j, r: AlignResult, how: str) -> PairResult:
         r = _finite_result(r)
@@ -943,6 +957,8 @@ class Merger:
                 if extra:
                     self._search(names, feats, sorted(extra), results, stats)
                     poses, report, warnings = self._solve(maps, names, results, reference)
+            if self._look_coarser(names, feats, results, poses, stats):
+                poses, report, warnings = self._solve(maps, names, results, reference)
             predicted = []
             for i in range(n):
                 for j in range(i + 1, n):
@@ -1012,6 +1028,28 @@ class Merger:
             same = r.success == old.success and (r.transform is None or np.array_equal(r.transform.params, old.transform.params))
             changed = changed or not same
         return changed
+
+    def _look_coarser(self, names, feats, results, poses, stats) -> bool:
+        """Search again, with keypoints detected on fewer pixels (``coarse_look``), the
+        declined pairs of the maps the placement left out, as :func:`align` does for a
+        single pair (a fleet's first searches do not, to spare the many pairs that do not
+        overlap). Returns whether any pair was merged so."""
+        if len(names) < 3 or not self.options.coarse_look or not METHODS[self.method].coarse_look:
+            return False
+        out = {k for k in range(len(names)) if poses[k] is None}
+        todo = sorted((i, j) for (i, j), p in results.items() if (i in out or j in out) and not p.result.success
+                      and not {"predicted", "coarse_look"} & set(p.result.details))
+        if not todo:
+            return False
+        jobs = [self._job(i, j, names, feats, first=results[(i, j)].result) for i, j in todo]
+        t1 = time.perf_counter()
+        merged = False
+        for (i, j), r in zip(todo, self._run("pairs", _run_pair, jobs)):
+            results[(i, j)] = self._store(names, i, j, r, "search")
+            merged = merged or r.success
+        stats.align_s += time.perf_counter() - t1
+        stats.pairs_searched += len(todo)
+        return merged
 
     def _search(self, names, feats, pairs, results, stats, *, both_sides: bool = False) -> None:
         if not pairs:
