@@ -240,7 +240,8 @@ class AlignOptions:
         keypoint images are no larger than this (nothing would change), and pairs whose
         declined pose shares less than 10 % of the smaller map (maps that do not overlap,
         most pairs of a fleet), are not searched again. Declined pairs take about twice
-        the time; 0 never searches again.
+        the time; 0 never searches again. :func:`gridmerge.merge` with three maps or more
+        searches again only the declined pairs of the maps its placement leaves out.
     """
 
     ratio: float = 0.8
