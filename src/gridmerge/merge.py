@@ -854,13 +854,11 @@ class Merger:
         the pairs of maps the placement leaves out are (``first``, their declined
         search; :meth:`_look_coarser`)."""
         options = self.options
-        if len(self._maps) >= 3 and first is None:
+        if len(self._maps) >= 3:
             if not both_sides and options.one_sided_confidence is not None:
                 options = replace(options, one_sided_confidence=None)
-            if options.coarse_look:
+            if first is None and options.coarse_look:
                 options = replace(options, coarse_look=0)
-        elif first is not None and options.one_sided_confidence is not None:
-            options = replace(options, one_sided_confidence=None)
         return _PairJob(self._maps[names[i]], self._maps[names[j]], self.method, options,
                         _pair_seed(self._seed, self._digests[names[i]], self._digests[names[j]]), (feats[i], feats[j]), prior, first)
 
@@ -1047,8 +1045,8 @@ class Merger:
         for (i, j), r in zip(todo, self._run("pairs", _run_pair, jobs)):
             results[(i, j)] = self._store(names, i, j, r, "search")
             merged = merged or r.success
+            stats.pairs_searched += "coarse_look" in r.details  # not when nothing would change
         stats.align_s += time.perf_counter() - t1
-        stats.pairs_searched += len(todo)
         return merged
 
     def _search(self, names, feats, pairs, results, stats, *, both_sides: bool = False) -> None:
