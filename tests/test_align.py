@@ -256,15 +256,17 @@ def test_blurred_keypoints_found_ahead_are_those_the_search_finds(monkeypatch):
         ahead, found = _shifted(f, -offset).blurred, _blurred_extractor(opts)(crop)
         np.testing.assert_allclose(ahead.xy, found.xy)
         np.testing.assert_array_equal(ahead.descriptors, found.descriptors)
-    # Given ahead, nothing is extracted during the alignment, and the result is the same.
-    lazy = align(a, b, rng=0)
+    # Given ahead, nothing is extracted during the alignment, and the result is the same
+    # (the pair is declined: without the coarser look's search, which finds keypoints of
+    # its own, blurred ones too, as a fleet's first searches do).
+    lazy = align(a, b, rng=0, coarse_look=0)
     assert "second_look" in lazy.details
 
     def no_extractor(opts):
         raise AssertionError("the blurred keypoints were found again")
 
     monkeypatch.setattr(importlib.import_module("gridmerge.align"), "_blurred_extractor", no_extractor)
-    ahead = align(a, b, rng=0, features=(fa, fb))
+    ahead = align(a, b, rng=0, features=(fa, fb), coarse_look=0)
     assert (ahead.success, ahead.confidence, ahead.details) == (lazy.success, lazy.confidence, lazy.details)
 
 
