@@ -419,7 +419,9 @@ class _PairJob:
 def _run_pair(job: _PairJob) -> AlignResult:
     if job.first is not None:
         fa, fb = job.features
-        return _coarse_look(job.first, job.a, job.b, fa, fb, job.method, job.options, job.seed, time.perf_counter())
+        # Timed from the first search's start, as align times its own second search.
+        t0 = time.perf_counter() - job.first.elapsed_s
+        return _coarse_look(job.first, job.a, job.b, fa, fb, job.method, job.options, job.seed, t0)
     p = job.prior
     if p is not None:
         return reverify(job.a, job.b, p.transform, method=job.method, options=job.options, rng=job.seed,
