@@ -148,6 +148,40 @@ def test_explore_unknown_world_cells_stop_rays():
     assert (seen.data[30, :40] == 0.0).all()
 
 
+def test_explore_sees_a_wall_behind_a_thin_band_of_unknown():
+    # A real map used as the world often leaves a cell or two unknown between the floor
+    # and a wall; with see_through the scanner sees the wall behind (the band stays
+    # unknown), and a wider band still stops the rays.
+    w = _open_world(60, 80)
+    w[:, 50] = np.nan  # a one-cell band before the wall at column 51
+    w[:, 51] = 1.0
+    w[:, 11:14] = np.nan  # a three-cell band before the wall at column 10
+    w[:, 10] = 1.0
+    vp = [[30.0, 30.0]]
+    stopped = explore(OccupancyGrid(w), vp, max_range_px=100)
+    seen = explore(OccupancyGrid(w), vp, max_range_px=100, see_through=2)
+    assert np.isnan(stopped.data[20:41, 51]).all()
+    assert (seen.data[20:41, 51] == 1.0).all()
+    assert np.isnan(seen.data[:, 50]).all()  # the band itself is never known
+    assert np.isnan(seen.data[:, :14]).all()  # three cells: not crossed
+    assert (seen.data[30, 14:50] == 0.0).all() and (stopped.data[30, 14:50] == 0.0).all()
+    # Beyond the seen wall, nothing.
+    assert np.isnan(seen.data[:, 52:]).all()
+    with pytest.raises(ValueError):
+        explore(OccupancyGrid(w), vp, see_through=-1)
+
+
+def test_explore_sees_through_small_unknown_holes_in_the_floor():
+    w = _open_world(60, 80)
+    w[28:33, 40:42] = np.nan  # a hole of 2 cells across, in the open
+    vp = [[20.0, 30.0]]
+    stopped = explore(OccupancyGrid(w), vp, max_range_px=100)
+    seen = explore(OccupancyGrid(w), vp, max_range_px=100, see_through=2)
+    assert np.isnan(stopped.data[30, 42:70]).all()  # its shadow
+    assert (seen.data[30, 42:70] == 0.0).all()
+    assert np.isnan(seen.data[28:33, 40:42]).all()
+
+
 def test_explore_building_is_consistent_and_fast(world):
     vps = random_viewpoints(world, 20, rng=1)
     explore(world, vps[:2])  # warm-up

@@ -530,6 +530,7 @@ def explore(
     n_rays: int = 720,
     rng: RngLike = None,
     noise: float = 0.0,
+    see_through: int = 0,
 ) -> OccupancyGrid:
     """What a robot with a 360-degree laser scanner maps from some viewpoints.
 
@@ -538,7 +539,9 @@ def explore(
     Cells a ray passes through are free; a ray stops at the first cell that is occupied in
     the world (``p > 0.65``), which is marked occupied, or at an unknown cell of the world
     or the map's edge, which stay unknown. Cells that no ray reaches within
-    ``max_range_px`` stay unknown.
+    ``max_range_px`` stay unknown. With ``see_through > 0``, a ray crosses up to that
+    many consecutive unknown cells of the world (they stay unknown) and goes on to what
+    lies behind them.
 
     Parameters
     ----------
@@ -592,11 +595,14 @@ def explore(
     noise = float(noise)
     if not 0.0 <= noise <= 1.0:
         raise ValueError(f"noise must be in [0, 1], got {noise!r}")
+    see_through = int(see_through)
+    if see_through < 0:
+        raise ValueError(f"see_through must be >= 0, got {see_through}")
     n = max(int(n_rays), int(math.ceil(1.2 * 2.0 * math.pi * max_range)))
 
     with np.errstate(invalid="ignore"):
         occupied = (data > OCCUPIED_THRESHOLD).ravel()
-    stops = occupied | np.isnan(data).ravel()
+    unknown = np.isnan(data).ravel()
     free = np.zeros(H * W, dtype=bool)
     hit = np.zeros(H * W, dtype=bool)
 
@@ -608,6 +614,7 @@ def explore(
         oy = np.repeat(vp[:, 1] + 0.5, n)
         cx = np.floor(ox).astype(np.int64)
         cy = np.floor(oy).astype(np.int64)
+        gap = np.zeros(cx.size, dtype=np.int64)  # consecutive unknown cells crossed
         with np.errstate(divide="ignore", invalid="ignore"):
             sx = np.where(dx > 0, 1, -1)
             sy = np.where(dy > 0, 1, -1)
@@ -618,16 +625,18 @@ def explore(
         while cx.size:
             inside = (cx >= 0) & (cx < W) & (cy >= 0) & (cy < H)
             idx = np.where(inside, cy * W + cx, 0)
-            stop = ~inside | stops[idx]
-            hit[idx[inside & occupied[idx]]] = True
-            go = ~stop
-            free[idx[go]] = True
+            wall = inside & occupied[idx]
+            hole = inside & unknown[idx]
+            gap = np.where(hole, gap + 1, 0)
+            hit[idx[wall]] = True
+            go = inside & ~wall & (gap <= see_through)
+            free[idx[go & ~hole]] = True
             step_x = tmx < tmy
             t_next = np.where(step_x, tmx, tmy)
             go &= t_next <= max_range
             if not go.all():
-                cx, cy, sx, sy, tdx, tdy, tmx, tmy, step_x = (
-                    a[go] for a in (cx, cy, sx, sy, tdx, tdy, tmx, tmy, step_x)
+                cx, cy, sx, sy, tdx, tdy, tmx, tmy, step_x, gap = (
+                    a[go] for a in (cx, cy, sx, sy, tdx, tdy, tmx, tmy, step_x, gap)
                 )
             cx = cx + np.where(step_x, sx, 0)
             cy = cy + np.where(step_x, 0, sy)

@@ -53,6 +53,7 @@ __all__ = [
     "Dataset",
     "Tier",
     "TIERS",
+    "SEE_THROUGH",
     "DATASETS",
     "PAPER_TABLE1",
     "default_data_dir",
@@ -170,12 +171,16 @@ class Dataset:
         ``build(k) -> Case``; deterministic.
     notes : list of str
         What a reader of the results should know (e.g. that the shared data was absent).
+    params : dict
+        How the cases were built, beyond their number and seed (e.g. :func:`simulated`'s
+        ``see_through``); recorded in a run's ``config.json``.
     """
 
     name: str
     size: int
     build: Callable[[int], Case]
     notes: list = field(default_factory=list)
+    params: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return self.size
@@ -222,6 +227,15 @@ TIERS = {
 
 #: Scanner range, in source cells (7.5 m at 0.05 m/cell).
 RANGE_PX = 150.0
+#: Consecutive unknown cells of a source map a scanner ray crosses
+#: (:func:`gridmerge.samples.explore`). The real maps used as sources leave a band of
+#: one or two unknown cells between the floor and many walls: in the Halmstad sensor
+#: maps, 55-60 % of the floor's edge cells (E5) border unknown rather than a wall, and
+#: 70-90 % of those have a wall within 3 cells (Willow Garage: 53 %). A scanner in the
+#: building sees those walls. (Until 2026-11-30 rays stopped at the first unknown cell
+#: (``see_through=0``), and simulated robots saw about half the walls of a Halmstad
+#: source.)
+SEE_THROUGH = 2
 _CLEARANCE = 5.0
 _MIN_GAP = 20  # negative pairs of one source: cells between the two robots' maps
 
@@ -319,9 +333,10 @@ def _shift(x: float, y: float) -> np.ndarray:
 class _World:
     """A source map prepared for ray casting: where a robot can stand, what it sees."""
 
-    def __init__(self, grid: OccupancyGrid, name: str):
+    def __init__(self, grid: OccupancyGrid, name: str, see_through: int = SEE_THROUGH):
         self.grid = grid
         self.name = name
+        self.see_through = int(see_through)
         H, W = grid.shape
         free = grid.free().astype(np.uint8)
         dist = cv2.distanceTransform(np.pad(free, 1), cv2.DIST_L2, 5)[1:-1, 1:-1]
@@ -348,7 +363,7 @@ class _World:
             x0, x1 = max(0, x - r), min(W, x + r + 1)
             y0, y1 = max(0, y - r), min(H, y + r + 1)
             sub = OccupancyGrid(self.grid.data[y0:y1, x0:x1], resolution=self.grid.resolution)
-            seen = samples.explore(sub, [[vp[0] - x0, vp[1] - y0]], max_range_px=RANGE_PX)
+            seen = samples.explore(sub, [[vp[0] - x0, vp[1] - y0]], max_range_px=RANGE_PX, see_through=self.see_through)
             yy, xx = np.nonzero(~np.isnan(seen.data))
             occ = seen.data[yy, xx] > 0.5
             flat = (yy + y0).astype(np.int64) * W + (xx + x0)
@@ -516,6 +531,7 @@ def robot_views_pair(
     scale: float,
     noise: float = 0.0,
     rng=0,
+    see_through: int = SEE_THROUGH,
 ) -> tuple[OccupancyGrid, OccupancyGrid, np.ndarray, dict]:
     """Maps of two robots scanning ``world`` from given viewpoints, with the exact truth.
 
@@ -524,7 +540,8 @@ def robot_views_pair(
     world's: it ray-casts at the world's resolution, as robot a does, and its map keeps a
     wall where an observed wall cell's centre is (:func:`_observed_in_frame`). Both scan
     360 degrees up to :data:`RANGE_PX` world cells (:func:`gridmerge.samples.explore`),
-    then get ``noise`` (missed and spurious hits).
+    seeing through up to ``see_through`` unknown cells of the world, then get ``noise``
+    (missed and spurious hits).
 
     Parameters
     ----------
@@ -535,6 +552,8 @@ def robot_views_pair(
     rotation_deg, scale : float
     noise : float
     rng : int or numpy.random.Generator
+    see_through : int, optional
+        Unknown cells of the world a ray crosses (:data:`SEE_THROUGH`).
 
     Returns
     -------
@@ -549,7 +568,7 @@ def robot_views_pair(
         ``b_to_source`` (3x3), ``rotation_deg``, ``scale``, ``noise``.
     """
     gen = np.random.default_rng(rng)
-    w = _World(world, "world")
+    w = _World(world, "world", see_through)
     a, b, M, off, ka, kb = _robot_maps(w, views_a, views_b, gen, rotation_deg=rotation_deg, scale=scale, noise=noise)
     truth = _shift(-off[0], -off[1]) @ M
     meta = {
@@ -666,6 +685,7 @@ def simulated(
     tiers: Sequence[str] = ("easy", "medium", "hard"),
     negatives: float = 0.2,
     building_shapes: Sequence[Sequence[int]] = ((560, 760), (720, 960)),
+    see_through: int = SEE_THROUGH,
 ) -> Dataset:
     """Simulated robot pairs with exact ground truth.
 
@@ -704,6 +724,10 @@ def simulated(
         Share of negative cases, in ``[0, 1)``.
     building_shapes : sequence of (int, int)
         Shapes of the procedural buildings.
+    see_through : int
+        Unknown cells of a source map a scanner ray crosses (:data:`SEE_THROUGH`; 0
+        rebuilds the set as it was until 2026-11-30). Procedural buildings have no
+        unknown cells: their cases are the same whatever the value.
 
     Returns
     -------
@@ -712,7 +736,7 @@ def simulated(
         ``source`` (and ``source_b``), ``overlap``, ``overlap_target``, ``shared_walls``
         (positives: :func:`shared_walls` of what the two robots saw, before noise, in the
         source's cells), ``rotation_deg``, ``scale``, ``noise``, ``views`` (a, b),
-        ``direction_deg``, ``a_offset``, ``b_to_source``.
+        ``direction_deg``, ``a_offset``, ``b_to_source``, ``see_through``.
     """
     n = int(n)
     if n < 0:
@@ -722,6 +746,9 @@ def simulated(
             raise GridMergeError(f"unknown tier {t!r} (use {', '.join(TIERS)})")
     if not 0.0 <= negatives < 1.0:
         raise GridMergeError(f"negatives must be in [0, 1), got {negatives}")
+    see_through = int(see_through)
+    if see_through < 0:
+        raise GridMergeError(f"see_through must be >= 0, got {see_through}")
     d = resolve_data_dir(data_dir)
     shared = source_names(d) if d is not None else []
     wanted = set(sources) if sources is not None else {"building", "willow", "halmstad"}
@@ -746,27 +773,30 @@ def simulated(
     def build(k: int) -> Case:
         rng = np.random.default_rng([int(seed), int(k), 7])
         if is_negative(k):
-            return _negative_case(k, rng, available, data_key, shapes)
-        j = k - sum(is_negative(i) for i in range(k))
-        tier = TIERS[tiers[j % len(tiers)]]
-        return _positive_case(k, rng, tier, available, data_key, shapes)
+            case = _negative_case(k, rng, available, data_key, shapes, see_through)
+        else:
+            j = k - sum(is_negative(i) for i in range(k))
+            tier = TIERS[tiers[j % len(tiers)]]
+            case = _positive_case(k, rng, tier, available, data_key, shapes, see_through)
+        case.meta["see_through"] = see_through
+        return case
 
-    return Dataset("simulated", n, build, notes)
+    return Dataset("simulated", n, build, notes, {"see_through": see_through})
 
 
-def _world(name: str, data_key: Optional[str]) -> _World:
-    return _world_cached(name, data_key)
+def _world(name: str, data_key: Optional[str], see_through: int) -> _World:
+    return _world_cached(name, data_key, see_through)
 
 
 @lru_cache(maxsize=2)
-def _world_cached(name: str, data_key: Optional[str]) -> _World:
+def _world_cached(name: str, data_key: Optional[str], see_through: int) -> _World:
     # Only the geometry is cached; the views cache grows with the viewpoints used.
-    return _World(_source_map(name, data_key), name)
+    return _World(_source_map(name, data_key), name, see_through)
 
 
-def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes) -> Case:
+def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes, see_through: int) -> Case:
     name = _pick_source(rng, available, shapes)
-    world = _world(name, data_key)
+    world = _world(name, data_key, see_through)
     world._views.clear()
     vps = world.viewpoints(rng)
     target = float(rng.uniform(*tier.overlap))
@@ -796,12 +826,12 @@ def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes) -> Case
     return Case(cid, "simulated", a.replace(name=f"{cid} a"), b.replace(name=f"{cid} b"), truth, True, meta)
 
 
-def _negative_case(k: int, rng, available, data_key, shapes) -> Case:
+def _negative_case(k: int, rng, available, data_key, shapes, see_through: int) -> Case:
     tier = TIERS["medium"]
     rot = float(rng.uniform(-180.0, 180.0))
     scale = _log_uniform(rng, *tier.scale)
     name = _pick_source(rng, available, shapes)
-    world = _world(name, data_key)
+    world = _world(name, data_key, see_through)
     world._views.clear()
     vps = world.viewpoints(rng)
     kind = "distant-parts" if rng.random() < 0.5 else "different-places"
@@ -817,7 +847,7 @@ def _negative_case(k: int, rng, available, data_key, shapes) -> Case:
         K = len(vps)
         order = np.argsort(vps @ rng.normal(size=2), kind="stable")
         va = vps[order[: max(3, int(rng.uniform(0.4, 0.7) * K))]]
-        world_b = _world_cached_pair(other, data_key)
+        world_b = _world_cached_pair(other, data_key, see_through)
         world_b._views.clear()
         vps_b = world_b.viewpoints(rng)
         order_b = np.argsort(vps_b @ rng.normal(size=2), kind="stable")
@@ -831,8 +861,8 @@ def _negative_case(k: int, rng, available, data_key, shapes) -> Case:
 
 
 @lru_cache(maxsize=1)
-def _world_cached_pair(name: str, data_key: Optional[str]) -> _World:
-    return _World(_source_map(name, data_key), name)
+def _world_cached_pair(name: str, data_key: Optional[str], see_through: int) -> _World:
+    return _World(_source_map(name, data_key), name, see_through)
 
 
 # ------------------------------------------------------------------- halmstad
@@ -1038,7 +1068,7 @@ def swapped(ds: Dataset) -> Dataset:
             rest = c.id.split("/", 1)[1]
         return Case(f"{name}/{rest}", name, c.b, c.a, truth, c.positive, meta)
 
-    return Dataset(f"{ds.name}-swapped", len(ds), build, list(ds.notes))
+    return Dataset(f"{ds.name}-swapped", len(ds), build, list(ds.notes), dict(ds.params))
 
 
 def _halmstad_map(root: str, env: str, stem: str) -> OccupancyGrid:

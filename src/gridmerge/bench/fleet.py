@@ -28,7 +28,7 @@ import numpy as np
 from .. import samples
 from ..grid import OccupancyGrid
 from ..transforms import corner_error
-from .datasets import _World, _robot_in_frame, source_map
+from .datasets import SEE_THROUGH, _World, _robot_in_frame, source_map
 
 __all__ = ["Fleet", "FleetBenchmark", "simulate_fleet", "placement_errors", "earlier_version", "benchmark"]
 
@@ -81,6 +81,7 @@ def simulate_fleet(
     scales: Optional[Sequence[float]] = None,
     noise: float = 0.0,
     data_dir=None,
+    see_through: int = SEE_THROUGH,
 ) -> Fleet:
     """Maps of ``n`` robots that explored one building together.
 
@@ -103,6 +104,10 @@ def simulate_fleet(
         robots in a 0.05 m/cell building.
     noise : float
         Missed wall hits (spurious hits ``noise / 50``), as in the benchmark's tiers.
+    see_through : int
+        Unknown cells of the source a scanner ray crosses
+        (:data:`gridmerge.bench.datasets.SEE_THROUGH`; 0: the fleets as built until
+        2026-11-30).
 
     Returns
     -------
@@ -118,7 +123,7 @@ def simulate_fleet(
         grid, label = source, source.name or "source"
     else:
         grid, label = source_map(source, data_dir), source
-    world = _World(grid, label)
+    world = _World(grid, label, see_through)
     k = int(np.clip(round(world.area / 2500.0), 6 * n, 40 * n))
     vps = samples.random_viewpoints(grid, k, rng=rng, region=world.region, clearance=5.0)
     homes = _homes(vps, n, rng)

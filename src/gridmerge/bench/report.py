@@ -22,6 +22,10 @@ COMPARED = (
 )
 
 
+def _params(params) -> str:
+    return "".join(f", {k.replace('_', ' ')} {v}" for k, v in (params or {}).items())
+
+
 def _pct(rate: Optional[float], k: Optional[int] = None, n: Optional[int] = None) -> str:
     if rate is None:
         return "–"
@@ -83,7 +87,7 @@ def results_markdown(bench) -> str:
     s = bench.summary
     mach = c.get("machine", {})
     out = ["# gridmerge benchmark\n\n"]
-    sets = ", ".join(f"{d['name']} ({d['cases']} cases)" for d in c.get("datasets", []))
+    sets = ", ".join(f"{d['name']} ({d['cases']} cases{_params(d.get('params'))})" for d in c.get("datasets", []))
     out.append(
         f"Seed {c.get('seed')}; methods {', '.join(c.get('methods', []))}; data sets {sets}"
         + ("; quick slice" if c.get("quick") else "")

@@ -359,7 +359,7 @@ def run(
         "methods": registered,
         "method_descriptions": _descriptions(registered),
         "skipped_methods": skipped,
-        "datasets": [{"name": ds.name, "cases": len(ds), "notes": ds.notes} for ds in sets],
+        "datasets": [{"name": ds.name, "cases": len(ds), "notes": ds.notes, "params": ds.params} for ds in sets],
         "n": n,
         "quick": bool(quick),
         "data_dir": None if _datasets.resolve_data_dir(data_dir) is None else str(_datasets.resolve_data_dir(data_dir)),
