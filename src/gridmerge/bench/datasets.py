@@ -229,12 +229,12 @@ TIERS = {
 RANGE_PX = 150.0
 #: Consecutive unknown cells of a source map a scanner ray crosses
 #: (:func:`gridmerge.samples.explore`). The real maps used as sources leave a band of
-#: one or two unknown cells between the floor and many walls: in the Halmstad sensor
-#: maps, 55-60 % of the floor's edge cells (E5) border unknown rather than a wall, and
-#: 70-90 % of those have a wall within 3 cells (Willow Garage: 53 %). A scanner in the
-#: building sees those walls. (Until 2026-11-30 rays stopped at the first unknown cell
-#: (``see_through=0``), and simulated robots saw about half the walls of a Halmstad
-#: source.)
+#: one or two unknown cells between the floor and many walls: of the floor cells at the
+#: edge of the known area, 45-55 % border unknown cells only in the Halmstad E5 maps
+#: (35-45 % in HIH, 89 % in Willow Garage), and 63-85 % of those have a wall within 3
+#: cells (HIH 88-92 %, Willow Garage 50 %). A scanner in the building sees those walls. (Until 2026-11-30 rays stopped at the first unknown cell
+#: (``see_through=0``): from the same positions, robots saw about 60 % of the wall
+#: cells they see now in a Halmstad source, a quarter in Willow Garage.)
 SEE_THROUGH = 2
 _CLEARANCE = 5.0
 _MIN_GAP = 20  # negative pairs of one source: cells between the two robots' maps
