@@ -727,6 +727,53 @@ def test_a_refined_pose_is_polished_onto_the_walls_at_the_maps_scale_only(monkey
     assert judge.polished(truth, judge.quick)[1] is truth
 
 
+def test_a_taken_pose_is_polished_in_the_other_maps_frame():
+    # The pose a search takes is polished once more in the frame of the map that was not
+    # its reference (b's for a's search, a's for b's), when that raises the walls'
+    # agreement there and lowers it nowhere; declined and keypoint-settled poses are not.
+    from gridmerge.align import AlignOptions, Estimate, _Judge, _polished_across
+
+    a, b, truth = samples.robot_pair(0, scale=0.6, rotation_deg=40)
+    truth = SimilarityTransform(truth)
+    judge = _Judge(a, b, AlignOptions(), np.random.default_rng(0))
+    off = SimilarityTransform(rotation=truth.rotation + 0.004, scale=truth.scale, translation=truth.translation + [4.0, -3.0])
+    none = np.zeros((0, 2))
+
+    def estimate(t, confidence=1.0, j=judge, **details):
+        return Estimate(t, np.zeros(0, bool), none, none, details=details, confidence=confidence, verification=j._verify(t))
+
+    out = _polished_across(estimate(off), judge, reverse=False)
+    assert corner_error(out.transform, truth, b.shape) < 1.0 < 4.0 < corner_error(off, truth, b.shape)
+    moved, walls = out.details["polished_across"]["moved_px"], out.details["polished_across"]["walls"]
+    assert 4.0 < moved < 8.0 and walls[1] >= walls[0] and walls[3] > 1.1 * walls[2]
+    assert out.verification.wall_agreement == pytest.approx(judge._verify(out.transform).wall_agreement)
+    # From b's side: the pose it found (a -> b) is polished in a's frame; b -> a comes back.
+    other = _Judge(b, a, AlignOptions(), np.random.default_rng(0))
+    rev = _polished_across(estimate(off.inverse, j=other), other, reverse=True)
+    assert corner_error(rev.transform.inverse, truth, b.shape) < 1.0
+    for kept in (estimate(off, confidence=0.3), estimate(off, walls="skipped: the keypoints settled the pose"),
+                 estimate(truth)):
+        assert _polished_across(kept, judge, reverse=False) is kept
+
+
+@pytest.mark.shared
+def test_a_pose_taken_from_b_side_is_polished_in_a_frame(shared_data):
+    # Simulated pair 40 of seed 2 (Willow Garage, hard tier: b at 0.66 of a's cell size,
+    # 12 % noise, 23 % overlap): found from b's side, which a's search confirms, 8 px off
+    # with a's walls agreeing on 26 % (at 2 px); polished in a's frame, within 1 px.
+    # Either order of the maps gives the same pose.
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=2, data_dir=shared_data, see_through=2)[40]
+    r = align(case.a, case.b, rng=0)
+    assert r.success and r.details["other_side"]["taken"], r.message
+    assert "polished_across" in r.details
+    assert corner_error(r.transform, case.truth, case.b.shape) < 1.0
+    s = align(case.b, case.a, rng=0)
+    assert s.confidence == r.confidence
+    assert np.allclose(s.transform.inverse.params, r.transform.params, atol=1e-6)
+
+
 @pytest.mark.shared
 def test_polishing_on_the_walls_merges_a_noisy_pair_at_another_resolution(shared_data, monkeypatch):
     # Simulated pair 2 of seed 1 (hard tier: b at 0.7 of a's cell size, 12 % spurious and
