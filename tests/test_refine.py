@@ -257,6 +257,16 @@ def test_wall_icp_brings_a_pose_a_few_pixels_off_onto_the_walls(robots):
         assert math.isclose(polished.scale, start.scale)  # the scale is kept by default
 
 
+def test_swapped_wall_icp_is_the_icp_with_b_as_reference(robots):
+    a, b, truth = robots
+    icp = WallICP(a, b)
+    start = (SimilarityTransform(translation=(2.0, -2.0)) @ SimilarityTransform(truth.params)).inverse  # a -> b
+    swapped = icp.swapped()
+    assert np.array_equal(swapped.polish(start).params, WallICP(b, a).polish(start).params)
+    assert corner_error(swapped.polish(start).inverse, truth, b.shape) < 0.5
+    assert icp._maps[0][0] is swapped._maps[1][0]  # the tables are shared, not made again
+
+
 def test_wall_icp_can_fit_the_scale_too(robots):
     a, b, truth = robots
     start = SimilarityTransform(rotation=truth.rotation, scale=truth.scale * 1.01, translation=truth.translation + [1.5, -1.0])

@@ -892,14 +892,19 @@ class _Judge:
             return value, t
         k = self._key(t)
         if k not in self._polished:
-            if self._icp is None:
-                self._icp = WallICP(self.a, self.b)
-            self._polished[k] = self._icp.polish(SimilarityTransform(t.params))
+            self._polished[k] = self.wall_icp().polish(SimilarityTransform(t.params))
         p = self._polished[k]
         if self.far_apart(p, t, _POLISH_REACH):
             return value, t
         gained = score(p)
         return (gained, p) if gained > value * (1.0 + _POLISH_GAIN) else (value, t)
+
+    def wall_icp(self, *, swapped: bool = False) -> WallICP:
+        """The ICP on the maps' walls (:class:`gridmerge.refine.WallICP`), made when first
+        needed; ``swapped``: with b as its reference, from the same nearest-wall tables."""
+        if self._icp is None:
+            self._icp = WallICP(self.a, self.b)
+        return self._icp.swapped() if swapped else self._icp
 
     def _verify(self, t: AffineTransform) -> Verification:
         k = self._key(t)
@@ -1175,17 +1180,23 @@ def _polished_across(est: Estimate, judge: _Judge, *, reverse: bool) -> Estimate
     ref, other = (judge.b, judge.a) if reverse else (judge.a, judge.b)
     found = SimilarityTransform(np.asarray(t.params if not reverse else t.inverse.params, dtype=float))  # other -> ref
     inv = found.inverse  # ref -> other: the pose seen from the other map
-    polished = WallICP(other, ref).polish(inv)
+    polished = judge.wall_icp(swapped=not reverse).polish(inv)
     back = polished.inverse  # other -> ref
     pose = polished if reverse else back  # b -> a
     moved = float(np.hypot(*(pose(judge.box) - t(judge.box)).T).max())  # a's pixels, at b's corners
     if moved > _POLISH_REACH:
         return est
-    tol = opts.wall_tolerance
-    there = (verify(other, ref, inv, tolerance=tol).wall_agreement, verify(other, ref, polished, tolerance=tol).wall_agreement)
+
+    def walls(frame: OccupancyGrid, u: AffineTransform) -> float:
+        # In a's frame, the judge's verification (remembered: the pose's own is needed last).
+        if frame is judge.a:
+            return judge._verify(u).wall_agreement
+        return verify(judge.b, judge.a, u, tolerance=opts.wall_tolerance).wall_agreement
+
+    there = (walls(other, inv), walls(other, polished))
     if not there[1] > there[0] * (1.0 + _POLISH_GAIN):
         return est
-    here = (verify(ref, other, found, tolerance=tol).wall_agreement, verify(ref, other, back, tolerance=tol).wall_agreement)
+    here = (walls(ref, found), walls(ref, back))
     if here[1] < here[0]:
         return est
     verification = judge._verify(pose)

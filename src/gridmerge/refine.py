@@ -30,6 +30,7 @@ which changes borderline decisions).
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from dataclasses import dataclass
@@ -635,6 +636,13 @@ class WallICP:
                 self._maps.append(None)
                 continue
             self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), _strided_cells(walls, max_points)))
+
+    def swapped(self) -> "WallICP":
+        """The same ICP with the maps' roles swapped (``WallICP(b, a)``), sharing their
+        nearest-wall tables."""
+        other = copy.copy(self)
+        other._maps = self._maps[::-1]
+        return other
 
     def _pairs(self, which: int, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """``(keep, nearest)``: which ``points`` (pixels of map ``which``) lie within
