@@ -500,7 +500,9 @@ def test_swapping_the_maps_inverts_the_transform_and_keeps_the_decision(pair):
     assert r1.success == r2.success == (pair != "different places")
     assert _inverse_of(r1, r2)
     assert (r1.confidence, r1.message, r1.inliers, r1.matches) == (r2.confidence, r2.message, r2.inliers, r2.matches)
-    assert r1.verification == r2.verification and r1.keypoints == r2.keypoints[::-1]
+    assert r1.keypoints == r2.keypoints[::-1]
+    v2 = r2.verification
+    assert r1.verification == replace(v2, walls_a=v2.walls_b, walls_b=v2.walls_a)  # per-map counts swapped
     assert {r1.details.pop("searched_from"), r2.details.pop("searched_from")} == {"a", "b"} and r1.details == r2.details
     assert np.array_equal(r1.inlier_xy, r2.inlier_xy[:, ::-1])
     if r1.success:
@@ -602,6 +604,55 @@ def test_real_maps_of_two_buildings_that_fit_by_chance_are_declined(shared_data,
     load = lambda name: load_map(folder / name.split("_")[0] / f"{name}.png")  # noqa: E731
     r = align(load(a_name), load(b_name), rng=0)
     assert not r.success
+
+
+def test_a_pose_judged_on_a_handful_of_one_maps_walls_is_declined():
+    """The wall agreement is the mean of the two maps' shares of matched walls; a share
+    of a handful of cells is no evidence, whatever the rest says."""
+    from gridmerge.align import AlignOptions, _decline_reason
+    from gridmerge.verify import Verification
+
+    opts = AlignOptions()
+    few = Verification(0.9996, 56386, 24, 0.617, 56410, 0.25, 6, 30)
+    assert _decline_reason(0, few, 0.77, opts, need_inliers=False) == (
+        "declined: the overlap holds only 6 wall cells of one map (need 10 of each to judge the walls)")
+    assert _decline_reason(0, replace(few, walls_a=30, walls_b=6), 0.77, opts, need_inliers=False).startswith(
+        "declined: the overlap holds only 6 wall cells")
+    assert _decline_reason(0, replace(few, walls_a=10), 0.77, opts, need_inliers=False) == ""
+    # Results saved before the counts were recorded are judged as before.
+    assert _decline_reason(0, replace(few, walls_a=None, walls_b=None), 0.77, opts, need_inliers=False) == ""
+    assert _decline_reason(0, few, 0.77, replace(opts, min_overlap_walls=5), need_inliers=False) == ""
+
+
+@pytest.mark.shared
+def test_maps_of_two_places_whose_overlap_holds_few_walls_are_declined(shared_data):
+    """Simulated seed 4, pair 49: two distant parts of Halmstad E5_08, whose best pose lays
+    a room of b onto open floor of a (walls agree on 62 %: all 6 of a's walls in the
+    overlap matched, 7 of b's 30). It was merged at confidence 0.77; declined now, for
+    the handful of a's walls the agreement rests on."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=4, data_dir=shared_data)[49]
+    assert not case.positive
+    r = align(case.a, case.b, rng=0)
+    assert not r.success and "wall cells of one map" in r.message
+    v = r.verification
+    assert min(v.walls_a, v.walls_b) < 10 <= max(v.walls_a, v.walls_b)
+
+
+@pytest.mark.shared
+def test_a_right_merge_resting_on_few_walls_is_still_taken(shared_data):
+    """Simulated seed 3, pair 50: a small overlap of two HIH_01 robots (36 wall cells of
+    the source seen by both), merged right although the search's frame holds only 18
+    wall cells of one map in the overlap: the floor of ``min_overlap_walls`` is far
+    below that."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=3, data_dir=shared_data)[50]
+    r = align(case.a, case.b, rng=0)
+    assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
+    v = r.verification
+    assert min(v.walls_a, v.walls_b) < 20
 
 
 def test_a_pose_turned_a_few_degrees_about_the_shared_part_is_found_again():

@@ -47,7 +47,8 @@ def _verify_whole_frame(a, b, transform, tolerance):
         shares = [np.count_nonzero(wa & near(wb)) / np.count_nonzero(wa), np.count_nonzero(wb & near(wa)) / np.count_nonzero(wb)]
     elif wa.any() or wb.any():
         shares = [0.0]
-    return index, agr, dis, float(np.mean(shares)) if shares else math.nan, int(np.count_nonzero(both))
+    counts = (int(np.count_nonzero(wa)), int(np.count_nonzero(wb)))
+    return index, agr, dis, float(np.mean(shares)) if shares else math.nan, int(np.count_nonzero(both)), counts
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -58,8 +59,8 @@ def test_verify_on_the_footprint_equals_the_whole_frame(seed):
     if seed >= 2:  # a wrong pose, partly outside a
         t = SimilarityTransform(rotation=t.rotation + rng.normal(0, 0.5), scale=t.scale, translation=t.translation + rng.normal(0, 150, 2))
     v = verify(a, b, t, tolerance=3.0)
-    index, agr, dis, wall, overlap = _verify_whole_frame(a, b, t, 3.0)
-    assert (v.agreement, v.disagreement, v.overlap_cells) == (agr, dis, overlap)
+    index, agr, dis, wall, overlap, walls = _verify_whole_frame(a, b, t, 3.0)
+    assert (v.agreement, v.disagreement, v.overlap_cells, (v.walls_a, v.walls_b)) == (agr, dis, overlap, walls)
     assert v.wall_agreement == pytest.approx(wall, nan_ok=True) and v.acceptance_index == pytest.approx(index, nan_ok=True)
 
 
@@ -69,6 +70,20 @@ def test_verify_without_any_overlap():
     g = OccupancyGrid(d)
     v = verify(g, g, SimilarityTransform(translation=(500, 0)))
     assert v.overlap_cells == 0 and math.isnan(v.acceptance_index) and math.isnan(v.wall_agreement)
+    assert v.walls_a == v.walls_b == 0
+
+
+def test_verify_counts_each_maps_walls_in_the_overlap():
+    """A wall of 10 cells, the other map's wall of 20 cells, both inside the overlap;
+    walls outside the other map's known cells are not counted."""
+    a = np.zeros((40, 40))
+    a[10, 5:15] = 1.0  # 10 wall cells
+    a[:, 30:] = np.nan
+    b = np.zeros((40, 40))
+    b[20, 5:25] = 1.0  # 20 wall cells
+    b[30, 32:38] = 1.0  # outside a's known cells
+    v = verify(OccupancyGrid(a), OccupancyGrid(b), SimilarityTransform())
+    assert (v.walls_a, v.walls_b) == (10, 20) and v.wall_agreement == 0.0
 
 
 def test_strided_cells_are_numpys_nonzero_with_a_stride():

@@ -139,6 +139,16 @@ class AlignOptions:
         leave right poses' walls agreeing on 33-48 % (Halmstad E5).
     min_overlap_cells : int
         Decline when the maps share fewer known cells.
+    min_overlap_walls : int
+        Decline when either map has fewer occupied cells in the overlap
+        (:attr:`~gridmerge.verify.Verification.walls_a`, ``walls_b``, counted in the
+        cells of the map the search took as its reference): the wall agreement is the
+        mean of the two maps' shares of walls matched, and a share of a handful of cells
+        is no evidence. A simulated pair of two distant parts of one building (seed 4,
+        pair 49) was merged at confidence 0.77, its overlap open floor holding 6 wall
+        cells of one map, all matched, and 30 of the other, 7 matched. Right merges can
+        rest on little: simulated pair 50 of seed 3 is merged right with 18 of one map's
+        (at 20 it was declined). docs/benchmarks.md, eighteenth session.
     min_confidence : float
         Decline below this confidence (CLI ``--min-confidence``; docs/benchmarks.md, "The
         decline threshold", measures what lower values merge, rightly and wrongly).
@@ -265,6 +275,7 @@ class AlignOptions:
     min_wall_agreement: float = 0.4
     min_wall_agreement_matched: float = 0.3
     min_overlap_cells: int = 100
+    min_overlap_walls: int = 10
     min_confidence: float = 0.5
     max_keypoints: int = 20000
     feature_pixels: int = 400_000
@@ -1713,7 +1724,8 @@ def _reference_key(g: OccupancyGrid) -> tuple:
 def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: float) -> AlignResult:
     """``r``, the alignment of ``a`` onto ``b``, as the alignment of ``b`` onto ``a``:
     the same decision, the transforms inverted, the pairs of per-map values swapped. The
-    verification stays the one the decision was made on (counted in b's cells)."""
+    verification stays the one the decision was made on (counted in b's cells; its
+    per-map wall counts swapped)."""
     inverse = None if r.candidate is None else r.candidate.inverse
     return replace(
         r,
@@ -1723,6 +1735,7 @@ def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: flo
         keypoints=(r.keypoints[1], r.keypoints[0]),
         elapsed_s=elapsed_s,
         inlier_xy=r.inlier_xy[:, ::-1].copy(),
+        verification=None if r.verification is None else replace(r.verification, walls_a=r.verification.walls_b, walls_b=r.verification.walls_a),
         details={**r.details, "searched_from": "b"},
     )
 
@@ -1907,6 +1920,9 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
         return f"declined: the maps share only {v.overlap_cells} known cells (need {opts.min_overlap_cells})"
     if not math.isfinite(v.acceptance_index) or v.acceptance_index < opts.min_acceptance:
         return f"declined: acceptance index {v.acceptance_index:.2f} below {opts.min_acceptance}"
+    if v.walls_a is not None and v.walls_b is not None and min(v.walls_a, v.walls_b) < opts.min_overlap_walls:
+        return (f"declined: the overlap holds only {min(v.walls_a, v.walls_b)} wall cells of one map "
+                f"(need {opts.min_overlap_walls} of each to judge the walls)")
     floor = opts.min_wall_agreement_matched if matched else opts.min_wall_agreement
     if not math.isfinite(v.wall_agreement) or v.wall_agreement < floor:
         return f"declined: walls agree on {v.wall_agreement:.0%} of the overlap (need {floor:.0%})"

@@ -56,6 +56,10 @@ class Verification:
         Cells of a's frame known in both maps.
     overlap_fraction : float
         ``overlap_cells`` over the known cells of the smaller map (in a's cells).
+    walls_a, walls_b : int or None
+        Occupied cells of a, and of b moved into a's cells, in the overlap: what
+        ``wall_agreement``'s two shares are taken of (``None`` in results saved before
+        they were recorded).
     """
 
     acceptance_index: float
@@ -64,6 +68,8 @@ class Verification:
     wall_agreement: float
     overlap_cells: int
     overlap_fraction: float
+    walls_a: int | None = None
+    walls_b: int | None = None
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
@@ -172,19 +178,19 @@ def verify(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, to
     agr = int(np.count_nonzero(ao & bo) + np.count_nonzero(af & bf))
     dis = int(np.count_nonzero(ao & bf) + np.count_nonzero(af & bo))
     index = agr / (agr + dis) if agr + dis else math.nan
-    wa, wb = ao, bo
+    na, nb = int(np.count_nonzero(ao)), int(np.count_nonzero(bo))
     shares = []
-    if wa.any() and wb.any():
-        shares.append(np.count_nonzero(wa & _near(wb, tolerance)) / np.count_nonzero(wa))
-        shares.append(np.count_nonzero(wb & _near(wa, tolerance)) / np.count_nonzero(wb))
-    elif wa.any() or wb.any():
+    if na and nb:
+        shares.append(np.count_nonzero(ao & _near(bo, tolerance)) / na)
+        shares.append(np.count_nonzero(bo & _near(ao, tolerance)) / nb)
+    elif na or nb:
         shares.append(0.0)
     wall = float(np.mean(shares)) if shares else math.nan
     scale2 = abs(float(np.linalg.det(transform.params[:2, :2])))
     known_b_in_a = np.count_nonzero(b.known) * scale2
     smaller = min(float(np.count_nonzero(a.known)), known_b_in_a)
     fraction = overlap / smaller if smaller > 0 else 0.0
-    return Verification(index, agr, dis, wall, overlap, min(1.0, fraction))
+    return Verification(index, agr, dis, wall, overlap, min(1.0, fraction), na, nb)
 
 
 @dataclass(frozen=True)
