@@ -604,9 +604,22 @@ class WallICP:
     (both ways, within a radius that shrinks to the verification's tolerance) and fits a
     similarity to the pairs, so it converges where walls lie on walls.
 
+    With ``facing`` (the default), a wall cell knows which way it faces: towards the
+    free cells the robot saw it from (the gradient of the map's free cells, blurred by
+    :data:`FACING_SIGMA`), or nowhere in particular when free space lies on both sides
+    or none (a thin wall seen from both rooms, a lone hit). Two cells pair only when
+    they do not face opposite ways: a wall seen from the corridor in one map is not the
+    wall of the next room seen from inside in the other, however near it lies. And each
+    step fits the pairs point to plane (the distance along the target cell's facing
+    direction; both axes for pairs that face nowhere), so that pairs slide along a wall
+    instead of pulling the pose towards where the wall cells happen to be sampled: a
+    pose 2-3 px off along a wall that point-to-point pairs held there reaches the truth.
+    A step that the pairs do not determine (every pair facing one way: one straight wall)
+    ends the polish with the pose as it was. ``facing=False`` is plain point-to-point ICP.
+
     The nearest wall cell of every cell of both maps is found once (a distance transform
-    with labels, kept as 2-byte offsets within :data:`WALL_ICP_REACH`), so polishing many
-    poses of one pair costs little.
+    with labels, kept as 2-byte offsets within :data:`WALL_ICP_REACH`), and so are the
+    blurred free cells (1 byte per cell), so polishing many poses of one pair costs little.
 
     Parameters
     ----------
@@ -615,6 +628,8 @@ class WallICP:
         Pairing radius (a's pixels) of each round, large to small.
     max_points : int
         Wall cells used per map at most (an even stride).
+    facing : bool
+        Pair only cells that do not face opposite ways, and fit point to plane.
 
     Examples
     --------
@@ -627,15 +642,22 @@ class WallICP:
     True
     """
 
-    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, *, radii=(4.0, 3.0, 2.0, 2.0), max_points: int = 20000):
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, *, radii=(4.0, 3.0, 2.0, 2.0), max_points: int = 20000,
+                 facing: bool = True):
         self.radii = tuple(float(r) for r in radii)
+        self.facing = bool(facing)
         self._maps = []
         for g in (a, b):
             walls = g.occupied()
             if not walls.any():
                 self._maps.append(None)
                 continue
-            self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), _strided_cells(walls, max_points)))
+            cells = _strided_cells(walls, max_points)
+            if self.facing:
+                free = _blurred_free(g)
+                self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), cells, free, _facing(free, cells)))
+            else:
+                self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), cells, None, None))
 
     def swapped(self) -> "WallICP":
         """The same ICP with the maps' roles swapped (``WallICP(b, a)``), sharing their
@@ -647,7 +669,7 @@ class WallICP:
     def _pairs(self, which: int, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """``(keep, nearest)``: which ``points`` (pixels of map ``which``) lie within
         ``radius`` of one of its walls, and that wall cell."""
-        offsets, _ = self._maps[which]
+        offsets = self._maps[which][0]
         h, w = offsets.shape[:2]
         p = np.rint(points).astype(np.int64)
         keep = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
@@ -663,7 +685,8 @@ class WallICP:
 
     def polish(self, t: SimilarityTransform, *, rounds: int = 3, min_pairs: int = 20, keep_scale: bool = True) -> SimilarityTransform:
         """``t`` (b pixels -> a pixels) moved to where the walls coincide; ``t`` itself
-        when either map has no walls or too few walls pair up."""
+        when either map has no walls, too few walls pair up, or (``facing``) a step is
+        not determined by its pairs."""
         if self._maps[0] is None or self._maps[1] is None:
             return t
         pa, pb = self._maps[0][1], self._maps[1][1]
@@ -676,6 +699,14 @@ class WallICP:
                 k2, q2 = self._pairs(1, pa @ inv[:2, :2].T + inv[:2, 2], radius * math.sqrt(abs(float(np.linalg.det(inv[:2, :2])))))
                 src = np.vstack([pb[k1], q2[k2]])
                 dst = np.vstack([q1[k1], pa[k2]])
+                if self.facing:
+                    src, dst, normals = self._faced(m, (k1, q1), (k2, q2))
+                    if len(src) < min_pairs:
+                        return t
+                    m = _plane_step(m, src, dst, normals, keep_scale=keep_scale)
+                    if m is None:
+                        return t
+                    continue
                 if len(src) < min_pairs:
                     return t
                 fit = SimilarityTransform.from_estimate(src, dst)
@@ -689,6 +720,104 @@ class WallICP:
                     m = np.array([[r[0, 0], r[0, 1], 0.0], [r[1, 0], r[1, 1], 0.0], [0.0, 0.0, 1.0]])
                     m[:2, 2] = dst.mean(axis=0) - r @ src.mean(axis=0)
         return SimilarityTransform(m)
+
+    def _faced(self, m: np.ndarray, forward, backward):
+        """The pairs of one round whose cells do not face opposite ways: ``(src, dst,
+        normals)``, b's pixels, a's pixels and the direction (a's frame) along which each
+        pair's distance counts: the target wall cell's facing (a's cell for b's cells
+        sent into a; b's cell, turned into a, for a's cells sent into b), the other
+        cell's when the target faces nowhere, zero when neither faces anywhere."""
+        (k1, q1), (k2, q2) = forward, backward
+        _, pa, free_a, na_cells = self._maps[0]
+        _, pb, free_b, nb_cells = self._maps[1]
+        turn = m[:2, :2] / (math.sqrt(abs(float(np.linalg.det(m[:2, :2])))) or 1.0)
+        # b's cells sent into a, paired with a's nearest walls (the targets).
+        tgt1 = _facing(free_a, q1[k1])
+        own1 = nb_cells[k1] @ turn.T
+        # a's cells sent into b, paired with b's nearest walls (the targets).
+        tgt2 = _facing(free_b, q2[k2]) @ turn.T
+        own2 = na_cells[k2]
+        tgt = np.vstack([tgt1, tgt2])
+        own = np.vstack([own1, own2])
+        same = _same_face(tgt, own)
+        normals = np.where((np.abs(tgt).sum(1) > 0)[:, None], tgt, own)[same]
+        src = np.vstack([pb[k1], q2[k2]])[same]
+        dst = np.vstack([q1[k1], pa[k2]])[same]
+        return src, dst, normals
+
+
+#: Blur (cells) of a map's free cells whose gradient tells which way a wall cell faces.
+FACING_SIGMA = 1.5
+#: Least gradient (of free cells blurred to 0..255, across two cells) for a wall cell to
+#: face somewhere; a step from unknown or wall to free gives about 130.
+_FACING_MIN = 24
+
+
+def _blurred_free(grid: OccupancyGrid) -> np.ndarray:
+    """``(H, W)`` uint8: the map's free cells (255) blurred by :data:`FACING_SIGMA`."""
+    free = grid.free().astype(np.uint8) * np.uint8(255)
+    return cv2.GaussianBlur(free, (0, 0), FACING_SIGMA)
+
+
+def _facing(free: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` unit ``(x, y)`` directions in which the ``(N, 2)`` integer cells face
+    (up the gradient of the blurred free cells ``free``), zero where that gradient is
+    below :data:`_FACING_MIN` (free on both sides, or on neither)."""
+    h, w = free.shape
+    c = np.rint(cells).astype(np.int64).reshape(-1, 2)
+    x, y = c[:, 0], c[:, 1]
+    xl, xr = np.clip(x - 1, 0, w - 1), np.clip(x + 1, 0, w - 1)
+    yu, yd = np.clip(y - 1, 0, h - 1), np.clip(y + 1, 0, h - 1)
+    g = np.stack([free[y, xr].astype(np.float64) - free[y, xl], free[yd, x].astype(np.float64) - free[yu, x]], axis=1)
+    norm = np.hypot(g[:, 0], g[:, 1])
+    out = np.zeros_like(g)
+    strong = norm >= _FACING_MIN
+    out[strong] = g[strong] / norm[strong, None]
+    return out
+
+
+def _same_face(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Which rows of the ``(N, 2)`` directions ``u`` and ``v`` do not point opposite ways
+    (a zero direction agrees with any)."""
+    return (u * v).sum(axis=1) >= 0.0
+
+
+def _plane_step(m: np.ndarray, src: np.ndarray, dst: np.ndarray, normals: np.ndarray, *, keep_scale: bool = True):
+    """``m`` (``(3, 3)``, b -> a pixels) after one point-to-plane step on the pairs
+    ``src`` (b) -> ``dst`` (a), each counting its distance along its ``(N, 2)`` normal
+    (a's frame; a zero normal counts both axes); ``None`` when the pairs do not
+    determine the step (all along one direction).
+
+    The step is a similarity about the centroid of the moved points, linearised in its
+    rotation (and scale, unless ``keep_scale``), solved by least squares, then applied
+    exactly."""
+    moved = src @ m[:2, :2].T + m[:2, 2]
+    none = np.abs(normals).sum(axis=1) == 0
+    n = np.vstack([normals[~none], np.repeat([[1.0, 0.0]], none.sum(), 0), np.repeat([[0.0, 1.0]], none.sum(), 0)])
+    p = np.vstack([moved[~none], moved[none], moved[none]])
+    q = np.vstack([dst[~none], dst[none], dst[none]])
+    centre = p.mean(axis=0)
+    d = p - centre
+    cols = [(-d[:, 1]) * n[:, 0] + d[:, 0] * n[:, 1], n[:, 0], n[:, 1]]  # rotation, x, y
+    if not keep_scale:
+        cols.append((d * n).sum(axis=1))  # scale
+    j = np.stack(cols, axis=1)
+    r = ((q - p) * n).sum(axis=1)
+    norm = np.sqrt((j**2).sum(axis=0))
+    if not (norm > 1e-9).all():
+        return None
+    jn = j / norm
+    h = jn.T @ jn
+    eig = np.linalg.eigvalsh(h)
+    if eig[0] < 1e-6 * eig[-1]:
+        return None
+    x = np.linalg.solve(h, jn.T @ r) / norm
+    theta, tx, ty = x[0], x[1], x[2]
+    grow = 1.0 + (x[3] if not keep_scale else 0.0)
+    c, s = math.cos(theta) * grow, math.sin(theta) * grow
+    step = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    step[:2, 2] = centre + np.array([tx, ty]) - step[:2, :2] @ centre
+    return step @ m
 
 
 #: How far (pixels) :class:`WallICP` looks for a map's nearest wall: its pairing radii in
