@@ -7,7 +7,7 @@ import pytest
 
 from gridmerge import OccupancyGrid, samples
 from gridmerge import refine as refine_mod
-from gridmerge.refine import WallICP, _a_field, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
+from gridmerge.refine import WallICP, _a_field, _blurred_free, _facing, _plane_step, _same_face, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
 from gridmerge.transforms import SimilarityTransform, corner_error
 
 
@@ -298,6 +298,98 @@ def test_wall_icp_reaches_the_walls_where_the_smoothed_cells_do_not(shared_data)
     assert corner_error(refined, truth, b.shape) > 2.0
     assert corner_error(polished, truth, b.shape) < 1.5
     assert verify(a, b, polished).wall_agreement > 0.5 > 0.3 > verify(a, b, refined).wall_agreement
+
+
+def _rooms(shape, boxes, partitions=()):
+    """A map (NaN unknown): each ``(x0, y0, x1, y1)`` box free inside with walls on its
+    border; each partition ``(x, y0, y1)`` a wall one cell thick down column ``x``."""
+    d = np.full(shape, np.nan)
+    for x0, y0, x1, y1 in boxes:
+        d[y0 : y1 + 1, x0 : x1 + 1] = 1.0
+    for x0, y0, x1, y1 in boxes:
+        d[y0 + 1 : y1, x0 + 1 : x1] = 0.0
+    for x, y0, y1 in partitions:
+        d[y0 : y1 + 1, x] = 1.0
+    return OccupancyGrid(d)
+
+
+def test_a_wall_cell_faces_the_free_side_it_was_seen_from():
+    g = _rooms((120, 160), [(10, 20, 140, 100)], partitions=[(80, 40, 80)])
+    cells = np.array([[10, 50], [140, 50], [60, 20], [60, 100], [80, 60], [30, 60]])
+    n = _facing(_blurred_free(g), cells)
+    # Outer walls face into the room; the partition, free on both sides, faces nowhere;
+    # so does a free cell in the open.
+    np.testing.assert_array_equal(n, [[1, 0], [-1, 0], [0, 1], [0, -1], [0, 0], [0, 0]])
+    assert _same_face(n[:2], n[1::-1]).tolist() == [False, False]
+    assert _same_face(n[[0, 4]], n[[0, 0]]).tolist() == [True, True]  # nowhere agrees with any
+
+
+@pytest.mark.parametrize("dx", [-2.5, -1.5, 1.5])
+def test_facing_pairs_do_not_take_the_next_rooms_wall_for_this_one(dx):
+    """a: two rooms with a partition three cells thick (faces at x = 60 and 63); b: the
+    right room alone, seen from inside. Started a couple of pixels off, point-to-point
+    ICP pairs b's partition face with the nearer face of a's partition, the left room's,
+    and stops between; pairs that face the same way put b's on its own."""
+    a = _rooms((120, 160), [(10, 20, 60, 100), (63, 20, 140, 100)])
+    b = _rooms((120, 160), [(63, 20, 140, 100)])
+    start = SimilarityTransform(translation=(dx, 1.0))
+    truth = np.eye(3)
+    assert corner_error(WallICP(a, b).polish(start), truth, b.shape) < 0.05
+    assert corner_error(WallICP(a, b, facing=False).polish(start), truth, b.shape) > 0.5
+
+
+def test_facing_wall_icp_lands_on_the_same_pose_from_any_side(robots):
+    """Point-to-plane pairs slide along the walls: from starts 2-4 px off in different
+    directions, the same pose within a hundredth of a pixel, and closer to the truth than
+    point-to-point pairs get."""
+    a, b, truth = robots
+    icp, plain = WallICP(a, b), WallICP(a, b, facing=False)
+    ends = []
+    for off in [(3.0, 0.0), (0.0, -3.0), (-2.0, 2.5), (2.5, 2.5)]:
+        start = SimilarityTransform(translation=off) @ truth
+        ends.append(icp.polish(start))
+        assert corner_error(ends[-1], truth, b.shape) < 0.1 < corner_error(plain.polish(start), truth, b.shape)
+    assert max(corner_error(e, ends[0].params, b.shape) for e in ends) < 0.01
+
+
+def _square_pairs(n_side=20):
+    """Cells on the four sides of a 40 x 40 square and their outward normals."""
+    t = np.linspace(0.0, 40.0, n_side)
+    z, f = np.zeros_like(t), np.full_like(t, 40.0)
+    pts = np.vstack([np.c_[t, z], np.c_[t, f], np.c_[z, t], np.c_[f, t]])
+    nrm = np.vstack([np.tile([0.0, -1.0], (n_side, 1)), np.tile([0.0, 1.0], (n_side, 1)),
+                     np.tile([-1.0, 0.0], (n_side, 1)), np.tile([1.0, 0.0], (n_side, 1))])
+    return pts, nrm
+
+
+def test_a_plane_step_recovers_a_small_motion_of_a_square():
+    pts, nrm = _square_pairs()
+    motion = SimilarityTransform(rotation=0.01, translation=(1.5, -0.8))
+    dst = motion(pts)
+    step = _plane_step(np.eye(3), pts, dst, nrm)
+    assert np.abs(step - motion.params).max() < 5e-3  # one linearised step
+    step = _plane_step(step, pts, dst, nrm)
+    assert np.abs(step - motion.params).max() < 1e-5
+    # Pairs facing nowhere count both axes: the same motion, point to point.
+    step = _plane_step(np.eye(3), pts, dst, np.zeros_like(nrm))
+    assert np.abs(_plane_step(step, pts, dst, np.zeros_like(nrm)) - motion.params).max() < 1e-5
+    # The scale too, when it is free.
+    grown = SimilarityTransform(scale=1.01, translation=(0.5, 0.5))
+    free = _plane_step(_plane_step(np.eye(3), pts, grown(pts), nrm, keep_scale=False), pts, grown(pts), nrm, keep_scale=False)
+    assert np.abs(free - grown.params).max() < 1e-4
+
+
+def test_a_plane_step_holds_the_motion_along_a_wall_weakly():
+    # One straight wall: across it the pairs fix the motion; along it only their small
+    # weight along the wall does, which alone there still recovers it.
+    t = np.linspace(0.0, 40.0, 30)
+    pts = np.c_[np.zeros_like(t), t]
+    nrm = np.tile([1.0, 0.0], (len(t), 1))
+    step = _plane_step(np.eye(3), pts, pts + [1.0, 2.0], nrm)
+    np.testing.assert_allclose(step[:2, 2], [1.0, 2.0], atol=1e-9)
+    # Pairs all at one spot determine no rotation: refused.
+    spot = np.tile([[5.0, 5.0]], (30, 1))
+    assert _plane_step(np.eye(3), spot, spot + [1.0, 0.0], np.tile([[1.0, 0.0]], (30, 1))) is None
 
 
 def test_wall_icp_without_walls_returns_the_pose_itself(robots):
