@@ -42,8 +42,10 @@ Methods
     The search takes the map that covers more ground as its reference, whichever order
     the maps come in (``AlignOptions.search_from``): swapping the maps inverts the
     transform and keeps the decision. A pose the full search takes is polished once more
-    on the walls in the frame of the map that was not its search's reference, where that
-    makes them agree clearly better there and no worse in the search's frame.
+    on the walls in its search's own frame (within 3 px, when its walls agree on half
+    and agree no less after), then in the frame of the map that was not its search's
+    reference, where that makes them agree clearly better there and no worse in the
+    search's frame.
 ``"sift"``
     The keypoint candidates alone, verified and refined the same way.
 ``"ransac"``
