@@ -698,8 +698,6 @@ class WallICP:
                 inv = np.linalg.inv(m)
                 k1, q1 = self._pairs(0, pb @ m[:2, :2].T + m[:2, 2], radius)
                 k2, q2 = self._pairs(1, pa @ inv[:2, :2].T + inv[:2, 2], radius * math.sqrt(abs(float(np.linalg.det(inv[:2, :2])))))
-                src = np.vstack([pb[k1], q2[k2]])
-                dst = np.vstack([q1[k1], pa[k2]])
                 if self.facing:
                     src, dst, normals = self._faced(m, (k1, q1), (k2, q2))
                     if len(src) < min_pairs:
@@ -708,6 +706,8 @@ class WallICP:
                     if m is None:
                         return t
                     continue
+                src = np.vstack([pb[k1], q2[k2]])
+                dst = np.vstack([q1[k1], pa[k2]])
                 if len(src) < min_pairs:
                     return t
                 fit = SimilarityTransform.from_estimate(src, dst)
@@ -798,31 +798,40 @@ def _plane_step(m: np.ndarray, src: np.ndarray, dst: np.ndarray, normals: np.nda
     from 2.5 px off, normals alone left 3.1 % of the poses more than 2 px off (one
     47 px), with a tenth along the walls 2.1 % (none beyond 7 px), point to point 8.0 %;
     on seeds 2-3 the tenth changed nothing that far off (4.5 %; point to point 10.1 %)."""
-    moved = src @ m[:2, :2].T + m[:2, 2]
-    none = np.abs(normals).sum(axis=1) == 0
-    faced = normals[~none]
-    along = np.c_[-faced[:, 1], faced[:, 0]]
-    k, f = int(none.sum()), len(faced)
-    n = np.vstack([faced, along, np.repeat([[1.0, 0.0]], k, 0), np.repeat([[0.0, 1.0]], k, 0)])
-    p = np.vstack([moved[~none], moved[~none], moved[none], moved[none]])
-    q = np.vstack([dst[~none], dst[~none], dst[none], dst[none]])
-    w = np.sqrt(np.concatenate([np.ones(f), np.full(f, _TANGENT_WEIGHT), np.ones(2 * k)]))
-    centre = p.mean(axis=0)
-    d = p - centre
-    cols = [(-d[:, 1]) * n[:, 0] + d[:, 0] * n[:, 1], n[:, 0], n[:, 1]]  # rotation, x, y
+    p = src @ m[:2, :2].T + m[:2, 2]
+    e = dst - p
+    d = p - p.mean(axis=0)
+    nx, ny = normals[:, 0], normals[:, 1]
+    faced = (nx != 0) | (ny != 0)
+    # Each pair weighs its 2-d distance by W = a I + b n n^T: a tenth along the wall plus
+    # all of it across (a = 0.1, b = 0.9, n unit), or both axes alike (a = 1, b = 0). With
+    # J the pair's motion per parameter (rotation: d turned a quarter; x; y; scale: d),
+    # the normal equations sum a J^T J + b (J^T n)(J^T n)^T and a J^T e + b (J^T n)(n . e).
+    a = np.where(faced, _TANGENT_WEIGHT, 1.0)
+    b = np.where(faced, 1.0 - _TANGENT_WEIGHT, 0.0)
+    dx, dy = d[:, 0], d[:, 1]
+    one, zero = np.ones_like(dx), np.zeros_like(dx)
+    cols = [np.stack([-dy, dx]), np.stack([one, zero]), np.stack([zero, one])]  # (2, N) each
     if not keep_scale:
-        cols.append((d * n).sum(axis=1))  # scale
-    j = np.stack(cols, axis=1) * w[:, None]
-    r = ((q - p) * n).sum(axis=1) * w
-    norm = np.sqrt((j**2).sum(axis=0))
-    if not (norm > 1e-9).all():
+        cols.append(np.stack([dx, dy]))
+    jn = np.stack([c[0] * nx + c[1] * ny for c in cols])  # (k, N): J^T n
+    k = len(cols)
+    h = np.empty((k, k))
+    for i in range(k):
+        for j in range(i, k):
+            h[i, j] = h[j, i] = (a * (cols[i] * cols[j]).sum(axis=0) + b * jn[i] * jn[j]).sum()
+    ne = nx * e[:, 0] + ny * e[:, 1]
+    g = np.array([(a * (c[0] * e[:, 0] + c[1] * e[:, 1]) + b * jn[i] * ne).sum() for i, c in enumerate(cols)])
+    diag = np.diag(h)
+    if not (diag > 1e-18).all():
         return None
-    jn = j / norm
-    h = jn.T @ jn
-    eig = np.linalg.eigvalsh(h)
+    norm = np.sqrt(diag)
+    hn = h / np.outer(norm, norm)
+    eig = np.linalg.eigvalsh(hn)
     if eig[0] < 1e-9 * eig[-1]:
         return None
-    x = np.linalg.solve(h, jn.T @ r) / norm
+    x = np.linalg.solve(hn, g / norm) / norm
+    centre = p.mean(axis=0)
     theta, tx, ty = x[0], x[1], x[2]
     grow = 1.0 + (x[3] if not keep_scale else 0.0)
     c, s = math.cos(theta) * grow, math.sin(theta) * grow
