@@ -1032,8 +1032,12 @@ class _Judge:
         self._shared[k] = (p, on)
         return p, on
 
+    def corners_apart(self, s: AffineTransform, t: AffineTransform) -> float:
+        """How far apart (a's pixels) ``s`` and ``t`` put b's corners, at most."""
+        return float(np.hypot(*(s(self.box) - t(self.box)).T).max())
+
     def far_apart(self, s: AffineTransform, t: AffineTransform, px: float) -> bool:
-        return bool(np.hypot(*(s(self.box) - t(self.box)).T).max() >= px)
+        return bool(self.corners_apart(s, t) >= px)
 
     def rival(self, best: AffineTransform, t: AffineTransform) -> bool:
         """Whether ``t`` is another answer than ``best``: clearly apart at b's corners, and
@@ -1103,6 +1107,12 @@ def _degrees_apart(u: float, v: float) -> float:
     """How far apart two rotations modulo 180 degrees are (0 to 90)."""
     d = abs(u - v) % 180.0
     return min(d, 180.0 - d)
+
+
+def _halves_disagreement(new: float, old: float) -> bool:
+    """Whether a wall agreement of ``new`` removes at least :data:`_RESCALE_GAIN` of the
+    disagreement that ``old`` leaves."""
+    return 1.0 - new <= (1.0 - old) * (1.0 - _RESCALE_GAIN)
 
 
 def _ring(params: np.ndarray, px: float, n: int) -> list[np.ndarray]:
@@ -1192,6 +1202,12 @@ def _taken_by(est: Estimate, opts: AlignOptions, scale_off: float) -> Callable[[
     return taken
 
 
+def _in_search_frame(t: AffineTransform, reverse: bool) -> SimilarityTransform:
+    """The pose ``t`` (b -> a) as its search found it: b -> a, or a -> b when
+    ``reverse`` (the search from b's side)."""
+    return SimilarityTransform(np.asarray(t.params if not reverse else t.inverse.params, dtype=float))
+
+
 def _polishable(est: Estimate, judge: _Judge) -> float | None:
     """The scale disagreement of ``est``'s pose when it may be polished (a pose taken by
     a search that refines, not one settled without judging the walls, and at a scale
@@ -1226,10 +1242,9 @@ def _polished_home(est: Estimate, judge: _Judge, *, reverse: bool) -> Estimate:
     if scale_off is None or est.verification.wall_agreement < _FINISH_WALLS:
         return est
     t = est.transform
-    start = SimilarityTransform(np.asarray(t.params if not reverse else t.inverse.params, dtype=float))  # b -> a, or a -> b
-    polished = judge.wall_icp(swapped=reverse).polish(start)
+    polished = judge.wall_icp(swapped=reverse).polish(_in_search_frame(t, reverse))
     pose = polished.inverse if reverse else polished  # b -> a
-    moved = float(np.hypot(*(pose(judge.box) - t(judge.box)).T).max())
+    moved = judge.corners_apart(pose, t)
     if moved > _FINISH_REACH or moved == 0.0:
         return est
     verification = judge._verify(pose)
@@ -1267,12 +1282,12 @@ def _polished_across(est: Estimate, judge: _Judge, *, reverse: bool) -> Estimate
         return est
     taken = _taken_by(est, opts, scale_off)
     ref, other = (judge.b, judge.a) if reverse else (judge.a, judge.b)
-    found = SimilarityTransform(np.asarray(t.params if not reverse else t.inverse.params, dtype=float))  # other -> ref
+    found = _in_search_frame(t, reverse)  # other -> ref
     inv = found.inverse  # ref -> other: the pose seen from the other map
     polished = judge.wall_icp(swapped=not reverse).polish(inv)
     back = polished.inverse  # other -> ref
     pose = polished if reverse else back  # b -> a
-    moved = float(np.hypot(*(pose(judge.box) - t(judge.box)).T).max())  # a's pixels, at b's corners
+    moved = judge.corners_apart(pose, t)  # a's pixels, at b's corners
     if moved > _POLISH_REACH:
         return est
 
@@ -1354,7 +1369,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         # half of the disagreement is as clear (a nudged pose 7.6 px off at 96 %).
         nudged = [(t, "walls (nudged)") for t in judge.climbed(best)]
         top = max(judge.quick(t) for t, _ in nudged)
-        if top > wall * (1.0 + _NUDGE_GAIN) or 1.0 - top <= (1.0 - wall) * (1.0 - _RESCALE_GAIN):
+        if top > wall * (1.0 + _NUDGE_GAIN) or _halves_disagreement(top, wall):
             candidates = candidates + nudged
             wall, best, kind, runner_up, v = judge.decide(candidates)
             ratio, confidence = _judged(wall, runner_up, v)
@@ -1366,7 +1381,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         # maps, and fitted the annotated points worse (E5_03-E5_06: 8.4 -> 13.6 px); at
         # simulated pair 46 of seed 6 it removed 93 % of the disagreement.
         rescaled = [(t, f"{kind} (at the resolutions' scale)") for t in judge.rescaled(best)]
-        if rescaled and 1.0 - judge.quick(rescaled[0][0]) <= (1.0 - wall) * (1.0 - _RESCALE_GAIN):
+        if rescaled and _halves_disagreement(judge.quick(rescaled[0][0]), wall):
             candidates = candidates + rescaled
             wall, best, kind, runner_up, v = judge.decide(candidates)
             ratio, confidence = _judged(wall, runner_up, v)

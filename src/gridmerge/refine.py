@@ -654,11 +654,8 @@ class WallICP:
                 self._maps.append(None)
                 continue
             cells = _strided_cells(walls, max_points)
-            if self.facing:
-                free = _blurred_free(g)
-                self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), cells, free, _facing(free, cells)))
-            else:
-                self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), cells, None, None))
+            free = _blurred_free(g) if self.facing else None
+            self._maps.append((_nearest_walls(walls, WALL_ICP_REACH), cells, free, None if free is None else _facing(free, cells)))
 
     def swapped(self) -> "WallICP":
         """The same ICP with the maps' roles swapped (``WallICP(b, a)``), sharing their
@@ -800,7 +797,8 @@ def _plane_step(m: np.ndarray, src: np.ndarray, dst: np.ndarray, normals: np.nda
     on seeds 2-3 the tenth changed nothing that far off (4.5 %; point to point 10.1 %)."""
     p = src @ m[:2, :2].T + m[:2, 2]
     e = dst - p
-    d = p - p.mean(axis=0)
+    centre = p.mean(axis=0)
+    d = p - centre
     nx, ny = normals[:, 0], normals[:, 1]
     faced = (nx != 0) | (ny != 0)
     # Each pair weighs its 2-d distance by W = a I + b n n^T: a tenth along the wall plus
@@ -831,7 +829,6 @@ def _plane_step(m: np.ndarray, src: np.ndarray, dst: np.ndarray, normals: np.nda
     if eig[0] < 1e-9 * eig[-1]:
         return None
     x = np.linalg.solve(hn, g / norm) / norm
-    centre = p.mean(axis=0)
     theta, tx, ty = x[0], x[1], x[2]
     grow = 1.0 + (x[3] if not keep_scale else 0.0)
     c, s = math.cos(theta) * grow, math.sin(theta) * grow
