@@ -655,6 +655,65 @@ def test_a_right_merge_resting_on_few_walls_is_still_taken(shared_data):
     assert min(v.walls_a, v.walls_b) < 30
 
 
+@pytest.mark.shared
+def test_the_wall_led_search_adds_the_peaks_the_walls_rank_best(shared_data):
+    """Simulated seed 4, pair 27 (two robots in HIH_01, 37 % overlap, 96 wall cells of the
+    source seen by both): the wall correlation's 20 best peaks all lie 30 px or more from
+    the truth, the nearest ranked 35th by the correlation; the walls' weighed agreement
+    ranks it first. Declined until the wall-led search, its correlation's best peaks not
+    settling the pose, judged the peaks the walls rank best too."""
+    from gridmerge.align import _WALL_LED_FINE_DEG, AlignOptions, _Judge, full_to_crop, working_maps
+    from gridmerge.bench import datasets
+    from gridmerge.correlate import correlation_hypotheses, rotation_candidates
+
+    case = datasets.simulated(n=60, seed=4, data_dir=shared_data)[27]
+    r = align(case.a, case.b, rng=0)
+    assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
+    assert r.details["source"] == "walls (wall-led, ranked by the walls)"
+    ca, oa, cb, ob = working_maps(case.a, case.b)
+    truth = SimilarityTransform(full_to_crop(SimilarityTransform(case.truth), oa, ob).params)
+    kw = dict(scales=[cb.resolution / ca.resolution], rotations=rotation_candidates(ca, cb), fine_deg=_WALL_LED_FINE_DEG)
+    errors = [corner_error(h.transform, truth, cb.shape) for h in correlation_hypotheses(ca, cb, **kw)]
+    assert len(errors) == 20 and min(errors) > 30
+    pool = correlation_hypotheses(ca, cb, **kw, peaks=12, max_hypotheses=1000)
+    judge = _Judge(ca, cb, AlignOptions(), np.random.default_rng(0))
+    judge.prepare()
+    top = max(pool, key=lambda h: judge.weighed(h.transform))
+    assert corner_error(top.transform, truth, cb.shape) < 10
+
+
+@pytest.mark.shared
+def test_the_wall_led_search_judges_the_correlations_best_peaks_first(shared_data):
+    """Simulated seed 2, pair 18 (a corridor of E5_03, 35 wall cells seen by both): merged
+    from a peak among the correlation's best, which the walls, unrefined, rank below
+    others; judged together with the walls' best peaks from the start, it was not
+    refined and the pair was declined."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=2, data_dir=shared_data)[18]
+    r = align(case.a, case.b, rng=0)
+    assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
+    assert r.details["source"].startswith("walls (wall-led") and "ranked by the walls" not in r.details["source"]
+
+
+def test_the_wall_led_search_takes_the_correlations_own_best_peaks_from_its_pool():
+    """``_best_peaks`` of the wall-led search's pool (12 peaks per rotation) gives the
+    correlation's own candidates (3 peaks per rotation, 20 best), in order."""
+    from gridmerge.align import _WALL_LED_FINE_DEG, _best_peaks, working_maps
+    from gridmerge.correlate import correlation_hypotheses, rotation_candidates
+
+    a, b, _ = samples.robot_pair(1)
+    ca, _, cb, _ = working_maps(a, b)
+    kw = dict(scales=[cb.resolution / ca.resolution], rotations=rotation_candidates(ca, cb), fine_deg=_WALL_LED_FINE_DEG)
+    own = correlation_hypotheses(ca, cb, **kw)
+    pool = correlation_hypotheses(ca, cb, **kw, peaks=12, max_hypotheses=1000)
+    assert len(pool) > 2 * len(own) and len(own) == 20
+    best = _best_peaks(pool, 3, 20)
+    assert [h.score for h in best] == [h.score for h in own]
+    assert all(np.allclose(h.transform.params, g.transform.params) for h, g in zip(best, own))
+    assert len(_best_peaks(pool, 1, 100)) == len({h.rotation_deg for h in pool})
+
+
 def test_a_pose_off_the_resolutions_scale_is_brought_back_to_it():
     """A pose 2.5 % off the maps' resolution ratio in scale (about the shared part, which
     stays nearly in place): brought to the ratio and refined, it is the truth again. Not
@@ -961,7 +1020,7 @@ def _one_side(transform, confidence, source="walls"):
 @pytest.mark.parametrize("other_conf, other_far, expect", [
     (0.9, False, "theirs"),  # the same merge, surer from b's side: its pose and confidence
     (0.3, False, "ours"),  # the same merge, less sure from b's side
-    (0.9, True, "one-sided"),  # another pose from b's side
+    (0.9, True, "one-sided"),  # another pose from b's side, however sure
     (None, None, "one-sided"),  # nothing from b's side
 ])
 def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeypatch, other_conf, other_far, expect):
@@ -1049,6 +1108,24 @@ def test_align_takes_the_surer_side_or_declines_a_one_sided_pose(monkeypatch, b_
         assert r.message.startswith("declined: found from one map's side only (from the other's the search finds no pose)")
     calls.clear()
     assert align(a, b, rng=0, one_sided_confidence=None).success and len(calls) == 1
+
+
+@pytest.mark.shared
+def test_a_sure_pose_from_the_second_side_alone_is_not_taken(shared_data):
+    """E5_01 - HIH_01, an office and an apartment: searched from E5_01's side (the first,
+    the larger map's known part) nothing is found; from HIH_01's, the apartment laid into
+    the office at confidence 0.99. Taking a pose found surely from the second side alone
+    (as one found from the first would be) merged two Halmstad cross-building pairs (0.99,
+    0.88) and one pair 21 px off (0.98), for two right poses of simulated pairs and one of
+    Halmstad (docs/benchmarks.md, twenty-first session): such a pose stays one-sided."""
+    from gridmerge.io import load_map
+
+    folder = shared_data / "halmstad"
+    a, b = load_map(folder / "E5" / "E5_01.png"), load_map(folder / "HIH" / "HIH_01.png")
+    for r in (align(a, b, rng=0), align(b, a, rng=0)):
+        assert not r.success
+        side = r.details["other_side"]
+        assert side["confidence"] > 0.8 and not side["same_pose"] and not side.get("taken")
 
 
 @pytest.mark.shared

@@ -1408,7 +1408,18 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         voted = match_rotation(*votes, scales[0])
         if voted is not None and all(_degrees_apart(voted, r) > 1.0 for r in rotations):
             rotations = rotations + [voted]
-        walls = correlation_hypotheses(a, b, scales=scales[:1], rotations=rotations, fine_deg=_WALL_LED_FINE_DEG)
+        # Its candidates: the correlation's best peaks; when those do not settle the pose,
+        # as many more of its peaks as the walls rank best (:meth:`_Judge.weighed`, as
+        # the judging ranks them). The correlation of coarse cells ranks its peaks poorly
+        # where the maps share little (simulated pair 27 of seed 4: its 20 best peaks all
+        # lay 40 px or more from the truth, the nearest its 35th; the walls rank that one
+        # first); the walls rank an unrefined peak far from its optimum poorly, and their
+        # best peaks, judged first, can leave the right one unrefined (seed 2's pair 18 is
+        # merged from a peak among the correlation's best; judged with the walls' best
+        # from the start, it was declined).
+        pool = correlation_hypotheses(a, b, scales=scales[:1], rotations=rotations, fine_deg=_WALL_LED_FINE_DEG,
+                                      peaks=_WALL_LED_PEAKS, max_hypotheses=_WALL_LED_POOL)
+        walls = _best_peaks(pool, _WALL_LED_OWN_PEAKS, _WIDE_HYPOTHESES)
         details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4)}
         # Poses far below that share cannot be accepted: they are not refined (maps
         # that do not overlap at all, most pairs of a fleet, end here at little cost).
@@ -1431,20 +1442,34 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
             clear = ratio2 <= _CLEAR_RATIO and wall2 >= _CLEAR_WALL and shared2 >= _CLEAR_SHARED
             return second, ratio2, confidence2, confidence2 > confidence and (settled or clear)
 
-        if led:
-            second, ratio2, confidence2, taken = judged_led(led)
+        def led_search(poses):
+            """:func:`judged_led` of ``poses``, and of those and the winner turned when
+            that fits better; ``(poses judged, winner, ratio, confidence, taken)``."""
+            second, ratio2, confidence2, taken = judged_led(poses)
             if taken:
                 # Before taking it: its candidates come from a few rotations, and the same
                 # merge turned a few degrees about the shared part may fit better (the
                 # refinement does not turn that far). If so, judge again with those poses.
                 turned = [(t, "walls (wall-led, turned)") for t in judge.turned(second[1])]
                 if turned and max(judge.weighed(t) for t, _ in turned) > second[0]:
-                    led = led + turned
-                    second, ratio2, confidence2, taken = judged_led(led)
-            if taken:
-                wall, best, kind, runner_up, v = second
-                ratio, confidence = ratio2, confidence2
-            candidates = candidates + led
+                    poses = poses + turned
+                    second, ratio2, confidence2, taken = judged_led(poses)
+            return poses, second, ratio2, confidence2, taken
+
+        taken = False
+        if led:
+            led, second, ratio2, confidence2, taken = led_search(led)
+        if not taken:
+            chosen = {id(h) for h in walls}
+            ranked = sorted((h for h in pool if id(h) not in chosen and judge.shared(h.transform) >= _HOPELESS_SHARED),
+                            key=lambda h: -judge.weighed(h.transform))
+            more = [(h.transform, "walls (wall-led, ranked by the walls)") for h in ranked[:_WALL_LED_BY_WALLS]]
+            if more:
+                led, second, ratio2, confidence2, taken = led_search(led + more)
+        if taken:
+            wall, best, kind, runner_up, v = second
+            ratio, confidence = ratio2, confidence2
+        candidates = candidates + led
     inl = _inliers(best, src, dst, opts)
     # The ambiguity is judged on the quick scores (all candidates have one), the walls on
     # the full verification of the winner.
@@ -1484,6 +1509,21 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         details["confirmed_by"] = _confirmed_by(matched[0])
         return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched[2], matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+
+
+def _best_peaks(pool: list, peaks: int, n: int) -> list:
+    """The ``n`` best hypotheses of ``pool`` (:func:`correlation_hypotheses`' list of one
+    scale, best first) counting only the ``peaks`` best of each rotation: what
+    ``correlation_hypotheses(..., peaks=peaks, max_hypotheses=n)`` returns."""
+    taken: dict = {}
+    out = []
+    for h in pool:
+        if taken.get(h.rotation_deg, 0) < peaks:
+            taken[h.rotation_deg] = taken.get(h.rotation_deg, 0) + 1
+            out.append(h)
+            if len(out) == n:
+                break
+    return out
 
 
 def _inliers(t: AffineTransform, src: np.ndarray, dst: np.ndarray, opts: AlignOptions) -> np.ndarray:
@@ -1886,6 +1926,14 @@ _CLEAR_SHARED = 0.2
 _WALL_LED_FINE_DEG = (-2.0, -1.0, 0.0, 1.0, 2.0)
 #: Hypotheses of the wall-led search refined against the maps.
 _WALL_LED_REFINE_TOP = 6
+#: The wall-led search's correlation peaks per rotation (all kept, up to the pool's size);
+#: its candidates are the :data:`_WIDE_HYPOTHESES` best of them by the correlation,
+#: counting :data:`_WALL_LED_OWN_PEAKS` per rotation, then, when those do not settle the
+#: pose, :data:`_WALL_LED_BY_WALLS` more that the walls rank best.
+_WALL_LED_PEAKS = 12
+_WALL_LED_POOL = 1000
+_WALL_LED_OWN_PEAKS = 3
+_WALL_LED_BY_WALLS = 20
 #: How far (a's pixels at b's corners) a refinement may move a candidate: keypoint and
 #: overlap-seeking candidates are close to their pose or wrong; the wall-led search's
 #: come from a correlation of cells several pixels wide, 10-35 px off (the refinement's
