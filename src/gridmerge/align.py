@@ -76,6 +76,7 @@ import json
 import math
 import os
 import time
+from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -1419,7 +1420,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         # from the start, it was declined).
         pool = correlation_hypotheses(a, b, scales=scales[:1], rotations=rotations, fine_deg=_WALL_LED_FINE_DEG,
                                       peaks=_WALL_LED_PEAKS, max_hypotheses=_WALL_LED_POOL)
-        walls = _best_peaks(pool, _WALL_LED_OWN_PEAKS, _WIDE_HYPOTHESES)
+        walls = _best_peaks(pool, _WALL_LED_OWN_PEAKS, _WALL_LED_OWN_HYPOTHESES)
         details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4)}
         # Poses far below that share cannot be accepted: they are not refined (maps
         # that do not overlap at all, most pairs of a fleet, end here at little cost).
@@ -1515,11 +1516,11 @@ def _best_peaks(pool: list, peaks: int, n: int) -> list:
     """The ``n`` best hypotheses of ``pool`` (:func:`correlation_hypotheses`' list of one
     scale, best first) counting only the ``peaks`` best of each rotation: what
     ``correlation_hypotheses(..., peaks=peaks, max_hypotheses=n)`` returns."""
-    taken: dict = {}
+    taken: Counter = Counter()
     out = []
     for h in pool:
-        if taken.get(h.rotation_deg, 0) < peaks:
-            taken[h.rotation_deg] = taken.get(h.rotation_deg, 0) + 1
+        if taken[h.rotation_deg] < peaks:
+            taken[h.rotation_deg] += 1
             out.append(h)
             if len(out) == n:
                 break
@@ -1927,12 +1928,14 @@ _WALL_LED_FINE_DEG = (-2.0, -1.0, 0.0, 1.0, 2.0)
 #: Hypotheses of the wall-led search refined against the maps.
 _WALL_LED_REFINE_TOP = 6
 #: The wall-led search's correlation peaks per rotation (all kept, up to the pool's size);
-#: its candidates are the :data:`_WIDE_HYPOTHESES` best of them by the correlation,
-#: counting :data:`_WALL_LED_OWN_PEAKS` per rotation, then, when those do not settle the
-#: pose, :data:`_WALL_LED_BY_WALLS` more that the walls rank best.
+#: its candidates are the :data:`_WALL_LED_OWN_HYPOTHESES` best of them by the
+#: correlation, counting :data:`_WALL_LED_OWN_PEAKS` per rotation (the correlation's own
+#: defaults), then, when those do not settle the pose, :data:`_WALL_LED_BY_WALLS` more
+#: that the walls rank best.
 _WALL_LED_PEAKS = 12
 _WALL_LED_POOL = 1000
 _WALL_LED_OWN_PEAKS = 3
+_WALL_LED_OWN_HYPOTHESES = 20
 _WALL_LED_BY_WALLS = 20
 #: How far (a's pixels at b's corners) a refinement may move a candidate: keypoint and
 #: overlap-seeking candidates are close to their pose or wrong; the wall-led search's
