@@ -437,7 +437,7 @@ def test_a_nudged_pose_reaches_the_truth_that_refining_does_not():
     judge = _Judge(a, b, AlignOptions(), np.random.default_rng(0))
     judge.prepare()
     start = SimilarityTransform(SimilarityTransform(translation=(26.0, 0.0)).params @ truth)
-    alone = judge._refined({}, start)
+    alone = judge._refined(start)
     assert corner_error(alone, truth, b.shape) > 5.0
     nudged = judge.nudged(start)
     errors = [corner_error(t, truth, b.shape) for t in nudged]
@@ -1213,13 +1213,13 @@ def test_a_declined_pair_is_searched_again_with_coarser_keypoints(monkeypatch):
     # It searched with keypoints of its own, detected on fewer pixels.
     align_module = importlib.import_module("gridmerge.align")
     searched = []
-    real = align_module.align
+    real = align_module._align
 
-    def spy(a, b, **kw):
-        searched.append(kw.get("options"))
-        return real(a, b, **kw)
+    def spy(a, b, method, opts, *args):
+        searched.append(opts)
+        return real(a, b, method, opts, *args)
 
-    monkeypatch.setattr(align_module, "align", spy)
+    monkeypatch.setattr(align_module, "_align", spy)
     again = align_module._coarse_look(r, na, nb, *_plain_features(na, nb), "hybrid", align_module.AlignOptions(), 0, 0.0)
     assert [o.feature_pixels for o in searched] == [200_000] and searched[0].coarse_look == 0
     assert again.details["coarse_look"] == look and again.message == r.message
@@ -1229,6 +1229,70 @@ def test_a_declined_pair_is_searched_again_with_coarser_keypoints(monkeypatch):
     # Nor is a pair that is accepted.
     a, b, _ = samples.table1_pair(0)
     assert "coarse_look" not in align(a, b, rng=0).details
+
+
+def test_the_coarser_look_reuses_what_the_first_search_learned(monkeypatch):
+    """The second search of a declined pair is handed the first search's memory: the
+    poses both searches judge (the wall correlation's, mostly) are scored once, and the
+    second search decides as it would have alone."""
+    from gridmerge.verify import WallScorer
+
+    align_module = importlib.import_module("gridmerge.align")
+    opts = align_module.AlignOptions()
+    na, nb = samples.negative_pair(0)
+    fa, fb = _plain_features(na, nb)
+    memory = align_module._PairMemory(7)
+    first = align_module._align(na, nb, "hybrid", replace(opts, coarse_look=0), 0, (fa, fb), None, memory)
+    assert not first.success
+    assert all(len(memory.side(side).quick) > 100 for side in (False, True))  # both sides were searched
+    calls = {"scored": 0, "refined": 0}
+    scorer, refine = WallScorer.__call__, align_module.refine_direct
+
+    def scored(*args, **kw):
+        calls["scored"] += 1
+        return scorer(*args, **kw)
+
+    def refined(*args, **kw):
+        calls["refined"] += 1
+        return refine(*args, **kw)
+
+    monkeypatch.setattr(WallScorer, "__call__", scored)
+    monkeypatch.setattr(align_module, "refine_direct", refined)
+
+    def coarse_look(m):
+        calls.update(scored=0, refined=0)
+        r = align_module._coarse_look(first, na, nb, fa, fb, "hybrid", opts, 0, 0.0, m)
+        return r.details["coarse_look"], dict(calls)
+
+    alone, fresh = coarse_look(align_module._PairMemory(7))
+    again, reused = coarse_look(memory)
+    assert again == alone and alone["message"].startswith("declined")
+    assert reused["scored"] < 0.5 * fresh["scored"]
+    # Once more with the same memory: every pose is known, nothing is scored or refined again.
+    assert coarse_look(memory) == (alone, {"scored": 0, "refined": 0})
+
+
+def test_a_pose_is_refined_the_same_whatever_was_refined_before():
+    """Each refinement draws from a generator seeded by the search's seed and the pose
+    itself, so the order candidates are refined in does not change them (and a second
+    search can reuse the first one's refinements)."""
+    from gridmerge.align import AlignOptions, _Judge, _PairMemory
+
+    a, b, truth = samples.robot_pair(0)
+    pose = SimilarityTransform(SimilarityTransform(translation=(4.0, -3.0)).params @ truth)
+    other = SimilarityTransform(SimilarityTransform(translation=(-6.0, 2.0)).params @ truth)
+    first = _Judge(a, b, AlignOptions(), memory=_PairMemory(3).side(False))
+    first.prepare()
+    first._refined(other)
+    after_other = first._refined(pose)
+    alone = _Judge(a, b, AlignOptions(), memory=_PairMemory(3).side(False))
+    alone.prepare()
+    assert np.array_equal(alone._refined(pose).params, after_other.params)
+    assert corner_error(after_other, truth, b.shape) < 1.0
+    # Another seed draws other cells: the same pose, refined a little differently.
+    reseeded = _Judge(a, b, AlignOptions(), memory=_PairMemory(4).side(False))
+    reseeded.prepare()
+    assert not np.array_equal(reseeded._refined(pose).params, after_other.params)
 
 
 def _plain_features(a, b):

@@ -61,3 +61,35 @@ def test_the_rotation_right_matches_agree_on_is_voted_among_many_wrong_ones():
     # Matches of another size ratio do not vote; too few votes give no rotation.
     assert match_rotation(right[:10], np.full(10, 1.5), 1.5) is None
     assert match_rotation(right, np.full(25, 1.5), 0.5) is None
+
+
+def test_a_cache_keeps_each_rotations_peaks_and_changes_nothing(monkeypatch):
+    """With a cache, a later call on the same maps computes only the rotations it has
+    not seen; its hypotheses are those of a call without one (copies: callers may tell
+    hypotheses apart by identity)."""
+    import gridmerge.correlate as correlate
+
+    a, b, _ = samples.robot_pair(0)
+    ca, _, cb, _ = working_maps(a, b)
+    calls = []
+    peaks = correlate._peaks
+    monkeypatch.setattr(correlate, "_peaks", lambda *args, **kw: calls.append(1) or peaks(*args, **kw))
+
+    def same(x, y):
+        return len(x) == len(y) and all(
+            np.array_equal(h.transform.params, k.transform.params) and (h.score, h.rotation_deg, h.scale) == (k.score, k.rotation_deg, k.scale)
+            for h, k in zip(x, y))
+
+    cache: dict = {}
+    kw = dict(scales=(1.0,), fine_deg=(-1.0, 0.0, 1.0), peaks=6, max_hypotheses=50)
+    first = correlation_hypotheses(ca, cb, rotations=[0.0, 90.0], cache=cache, **kw)
+    assert len(calls) == 2 * 2 * 3  # two rotations, both half turns, three offsets
+    calls.clear()
+    more = correlation_hypotheses(ca, cb, rotations=[0.0, 90.0, 33.5], cache=cache, **kw)
+    assert len(calls) == 2 * 3  # the new rotation only
+    calls.clear()
+    assert same(first, correlation_hypotheses(ca, cb, rotations=[0.0, 90.0], **kw))
+    assert same(more, correlation_hypotheses(ca, cb, rotations=[0.0, 90.0, 33.5], **kw))
+    assert len(calls) == 2 * 2 * 3 + 2 * 3 * 3
+    again = correlation_hypotheses(ca, cb, rotations=[0.0, 90.0], cache=cache, **kw)
+    assert same(first, again) and not {id(h) for h in first} & {id(h) for h in again}

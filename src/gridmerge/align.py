@@ -537,7 +537,9 @@ class Method:
         their authors wrote them).
     coarse_look : bool
         ``True``: a declined search is searched again with keypoints detected on fewer
-        pixels (:attr:`AlignOptions.coarse_look`; ``"hybrid"``).
+        pixels (:attr:`AlignOptions.coarse_look`; ``"hybrid"``). Its ``estimate`` takes a
+        keyword ``memory`` as well: what the first search learned about the maps, for the
+        second.
     """
 
     name: str
@@ -784,35 +786,104 @@ def _second_look_hypotheses(a: OccupancyGrid, b: OccupancyGrid, ga: Features, gb
     return [h for h in hyps if not _scale_ruled_out(_scale_disagreement(h.transform, a, b), opts)]
 
 
+@dataclass
+class _SearchMemory:
+    """What a search from one side of one pair of maps (cut as :func:`working_maps`
+    cuts them) learns that depends on the maps and a pose only, kept for a second
+    search of the same maps (:attr:`AlignOptions.coarse_look` searches again with other
+    keypoints; most of its other candidates are the first search's).
+
+    Every pose's refinement draws from a generator of its own, seeded by ``seed`` and
+    the pose (:func:`_pose_generator`), so that a pose is refined the same way whatever
+    was searched before it. Small: scores, poses and verifications, no images (the
+    scorer, the refinement's fields and the polish's tables are made again).
+    """
+
+    seed: int
+    quick: dict = field(default_factory=dict)  # pose -> (wall agreement, weighed, shared)
+    refined: dict = field(default_factory=dict)  # (pose, reach) -> refined pose
+    verified: dict = field(default_factory=dict)  # pose -> Verification
+    polished: dict = field(default_factory=dict)  # pose -> its polish (whatever the score)
+    correlations: dict = field(default_factory=dict)  # the correlation's coarse images and peaks
+
+
+class _PairMemory:
+    """The two sides' :class:`_SearchMemory` of one pair of maps, given in one order:
+    what :func:`align`'s first search hands to its coarser look
+    (:func:`_coarse_look`). ``cut``: the working maps' offsets and shapes; a memory of
+    other cuts starts afresh."""
+
+    def __init__(self, seed: int):
+        self.seed = int(seed)
+        self._cut: tuple | None = None
+        self._sides: dict[bool, _SearchMemory] = {}
+
+    @classmethod
+    def drawn(cls, gen: np.random.Generator) -> "_PairMemory":
+        return cls(int(gen.integers(0, 2**63 - 1)))
+
+    def of(self, oa: np.ndarray, ob: np.ndarray, a: OccupancyGrid, b: OccupancyGrid) -> "_PairMemory":
+        """This memory, for the working maps ``a``, ``b`` cut at ``oa``, ``ob``
+        (forgotten first when it was of other cuts)."""
+        cut = (tuple(np.asarray(oa).tolist()), tuple(np.asarray(ob).tolist()), a.shape, b.shape, a.resolution, b.resolution)
+        if cut != self._cut:
+            self._cut, self._sides = cut, {}
+        return self
+
+    def side(self, reverse: bool) -> _SearchMemory:
+        """The memory of the search from a's side, or from b's when ``reverse``."""
+        if reverse not in self._sides:
+            self._sides[reverse] = _SearchMemory(self.seed + (1 if reverse else 0))
+        return self._sides[reverse]
+
+
+def _pose_generator(seed: int, key: bytes) -> np.random.Generator:
+    """The generator of one refinement: seeded by ``seed`` and the refinement's key
+    (the pose's parameters and the reach, as bytes)."""
+    words = np.frombuffer(key + bytes(-len(key) % 4), dtype=np.uint32)
+    return np.random.default_rng([int(seed), *words.tolist()])
+
+
 class _Judge:
     """Scores, refines and ranks candidate transforms of one pair of maps, remembering
-    what it has computed (the keypoints-first stage and the full search share it)."""
+    what it has computed (the keypoints-first stage and the full search share it, and
+    with ``memory`` a second search of the same maps: :class:`_SearchMemory`).
+    ``rng``: draws the memory's seed when no memory is given."""
 
-    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng, *, pool: ThreadPoolExecutor | None = None):
-        self.a, self.b, self.opts, self.rng = a, b, opts, rng
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng=None, *,
+                 pool: ThreadPoolExecutor | None = None, memory: _SearchMemory | None = None):
+        self.a, self.b, self.opts = a, b, opts
+        if memory is None:
+            gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+            memory = _PairMemory.drawn(gen).side(False)
+        self.memory = memory
         self.pool = pool  # a helper thread (work with no random draw only), or None
         self._scorer: Future | None = None
         self._fields: Future | None = None
         self.box = b.corners()
-        self._quick: dict = {}
-        self._memo: dict = {}
-        self._verified: dict = {}
+        self._quick: dict = memory.quick
+        self._memo: dict = memory.refined
+        self._verified: dict = memory.verified
         self._known_b: np.ndarray | None = None  # a sample of b's known cells (rival)
         self._shared: dict = {}  # pose -> that sample moved into a, and which land on a's known cells
         self._icp: WallICP | None = None
-        self._polished: dict = {}  # pose -> its polish (whatever the score)
+        self._polished: dict = memory.polished
         self._same: dict = {}  # pose -> the refined candidates it beat that are the same merge
 
     def release(self) -> None:
         """Let go of the scorer, the refinement's fields and the polish's tables (the
-        judge still measures and verifies poses; it no longer scores or refines them)."""
+        judge still measures and verifies poses and remembers what it found; it no
+        longer scores or refines new ones)."""
         for f in (self._scorer, self._fields):
             if f is not None:
                 f.result()  # a task of the helper thread ends before its result is dropped
         self._scorer = self._fields = None
         self._icp = None
-        self._memo.clear()
-        self._polished.clear()
+
+    def correlations(self, **kwargs) -> list:
+        """:func:`gridmerge.correlate.correlation_hypotheses` of the maps with ``kwargs``,
+        each rotation's peaks computed once (the memory keeps them)."""
+        return correlation_hypotheses(self.a, self.b, cache=self.memory.correlations, **kwargs)
 
     def _later(self, fn, *args) -> Future:
         """``fn(*args)`` in the helper thread, or now without one."""
@@ -873,17 +944,18 @@ class _Judge:
             self._quick[k] = (q.wall_agreement, q.wall_agreement * support * min(1.0, q.shared) ** 0.25, q.shared)
         return self._quick[k]
 
-    def _refined(self, memo: dict, t: AffineTransform, rng=None, max_shift: float | None = None):
+    def _refined(self, t: AffineTransform, max_shift: float | None = None):
         """``t`` refined against the maps (or ``t`` itself when the refinement is not
         accepted) within ``max_shift`` (default :data:`_REFINE_REACH`); one refinement
-        per transform and reach, whatever the score."""
+        per transform and reach, whatever the score, drawing from a generator of its own
+        (:func:`_pose_generator`)."""
         max_shift = _REFINE_REACH if max_shift is None else max_shift
-        k = (self._key(t), max_shift)
-        if k not in memo:
-            refined, report = refine_direct(self.a, self.b, t, rng=self.rng if rng is None else rng, cache=self.fields, max_shift=max_shift,
-                                            scale_prior=scale_prior(self.a, self.b, t, self.opts))
-            memo[k] = refined if report.accepted else t
-        return memo[k]
+        k = self._key(t) + np.float64(max_shift).tobytes()
+        if k not in self._memo:
+            refined, report = refine_direct(self.a, self.b, t, rng=_pose_generator(self.memory.seed, k), cache=self.fields,
+                                            max_shift=max_shift, scale_prior=scale_prior(self.a, self.b, t, self.opts))
+            self._memo[k] = refined if report.accepted else t
+        return self._memo[k]
 
     def polished(self, t: AffineTransform, score) -> tuple[float, AffineTransform]:
         """``(score, pose)``: refined pose ``t`` polished by ICP on the walls
@@ -928,13 +1000,12 @@ class _Judge:
 
     def settle(self, candidates: list[tuple[AffineTransform, str]]):
         """``(wall, best, kind, runner_up, verification)`` of the best of ``candidates``,
-        refined alone: a quick look that leaves the random stream of :meth:`decide` as it
-        was (the refinement draws from a generator of its own). The runner-up is the best
-        unrefined score of a clearly different candidate."""
+        refined alone. The runner-up is the best unrefined score of a clearly different
+        candidate."""
         scored = sorted(((self.quick(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
         wall, best, kind = scored[0]
         if self.opts.refine:
-            best = self._refined({}, best, rng=_side_generator(self.rng))
+            best = self._refined(best)
             wall = self.quick(best)
         verification = self._later(self._verify, best)  # while its rivals are sought
         runner_up = max((w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)), default=0.0)
@@ -958,7 +1029,7 @@ class _Judge:
         starts = [SimilarityTransform(p) for p in _ring(t.params, _NUDGE_PX, _NUDGE_DIRECTIONS)]
         near = [self.scorer(s, tolerance=_NUDGE_PX / 2.0).wall_agreement for s in starts]
         order = sorted(range(len(starts)), key=lambda i: -near[i])[:_NUDGE_REFINED]
-        return [self._refined(self._memo, starts[i]) for i in order]
+        return [self._refined(starts[i]) for i in order]
 
     def climbed(self, t: AffineTransform) -> list[AffineTransform]:
         """:meth:`nudged` poses of ``t``, and while the best of them scores more than the
@@ -995,7 +1066,7 @@ class _Judge:
         centre = p[on].mean(axis=0)
         factor = (self.b.resolution / self.a.resolution) / SimilarityTransform(t.params).scale
         about = SimilarityTransform(translation=centre) @ SimilarityTransform(scale=factor) @ SimilarityTransform(translation=-centre)
-        return [self._refined(self._memo, SimilarityTransform(about.params @ t.params))]
+        return [self._refined(SimilarityTransform(about.params @ t.params))]
 
     def turned(self, t: AffineTransform) -> list[AffineTransform]:
         """``t`` turned by :data:`_TURN_DEG` about the centre of the part of b it lays on
@@ -1009,7 +1080,7 @@ class _Judge:
             turn = SimilarityTransform(translation=centre) @ SimilarityTransform(rotation=math.radians(deg)) @ SimilarityTransform(translation=-centre)
             start = SimilarityTransform.from_estimate(self.box, AffineTransform(turn.params @ t.params)(self.box))
             if start:
-                out.append(self._refined(self._memo, start, max_shift=_WALL_LED_REACH))
+                out.append(self._refined(start, max_shift=_WALL_LED_REACH))
         return out
 
     def _shared_part(self, t: AffineTransform) -> tuple[np.ndarray, np.ndarray]:
@@ -1080,7 +1151,7 @@ class _Judge:
             if any(not self.far_apart(c[1], t, _SAME_POSE_PX) for c in chosen):
                 continue
             if opts.refine:
-                t = self._refined(self._memo, t, max_shift=_WALL_LED_REACH if weighed else _REFINE_REACH)
+                t = self._refined(t, max_shift=_WALL_LED_REACH if weighed else _REFINE_REACH)
                 value, t = self.polished(t, score)
             chosen.append([value, t, kind])
         chosen.sort(key=lambda c: -c[0])
@@ -1123,26 +1194,18 @@ def _ring(params: np.ndarray, px: float, n: int) -> list[np.ndarray]:
     return [SimilarityTransform(translation=(px * math.cos(u), px * math.sin(u))).params @ params for u in angles]
 
 
-def _side_generator(gen: np.random.Generator) -> np.random.Generator:
-    """A generator derived from ``gen`` without drawing from it."""
-    try:
-        return gen.spawn(1)[0]
-    except (AttributeError, TypeError, ValueError):  # no seed sequence to spawn from
-        return np.random.default_rng(0x5EED)
-
-
-def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
+def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng, memory: _PairMemory | None = None) -> Estimate:
     # The judge's helper thread makes its tools, which need only the maps, while the
     # keypoints are matched and the first candidates scored, and verifies the poses it
     # settles on while their rivals are sought (OpenCV and numpy leave the interpreter
     # while they work).
     if (os.cpu_count() or 1) < 2:
-        return _both_sides(a, b, fa, fb, opts, rng, None)
+        return _both_sides(a, b, fa, fb, opts, rng, None, memory)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-judge") as pool:
-        return _both_sides(a, b, fa, fb, opts, rng, pool)
+        return _both_sides(a, b, fa, fb, opts, rng, pool, memory)
 
 
-def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
+def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool, memory: _PairMemory | None = None) -> Estimate:
     """The search from a's side; below ``opts.one_sided_confidence``, judged with the
     search from b's side as well (:attr:`AlignOptions.one_sided_confidence`).
 
@@ -1150,7 +1213,9 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
     how far its pose moves the shared part (``moved_px``), its ``source``, whether it is
     the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
     and ``details["first_side"]`` holds a's side's confidence and source."""
-    judge = _Judge(a, b, opts, rng, pool=pool)
+    if memory is None:
+        memory = _PairMemory.drawn(rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng))
+    judge = _Judge(a, b, opts, pool=pool, memory=memory.side(False))
     second = _SecondLook(a, b, opts, (fa.blurred, fb.blurred)) if opts.second_look > 0 else None
     forward = _hybrid_search(judge, fa, fb, second)
     tau = opts.one_sided_confidence
@@ -1161,10 +1226,10 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool) -> Estimate:
         # Declined, and sharing too little for the same merge found from b's side to be
         # taken (most pairs of a fleet, which do not overlap): not sought again.
         return forward
-    # From b's side, with a generator of its own (the first search's draws stay as they were);
-    # the first search's tools are let go first (two maps' worth of fields and tables).
+    # From b's side, with a memory of its own; the first search's tools are let go
+    # first (two maps' worth of fields and tables).
     judge.release()
-    reverse = _hybrid_search(_Judge(b, a, opts, _side_generator(rng), pool=pool), fb, fa, None if second is None else second.swapped())
+    reverse = _hybrid_search(_Judge(b, a, opts, pool=pool, memory=memory.side(True)), fb, fa, None if second is None else second.swapped())
     other = reverse.confidence or 0.0
     back = None if reverse.transform is None else reverse.transform.inverse
     moved = math.inf if back is None else judge.moved(forward.transform, back)
@@ -1350,7 +1415,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
     # poses are those with large shared explored areas, where the wall agreement judges
     # well. ``scales[0]`` is the maps' resolution ratio, the others the keypoints' scales.
     rotations = rotation_candidates(a, b)  # the wall directions', for both wall searches
-    wide = correlation_hypotheses(a, b, scales=scales, rotations=rotations, free_agreement=_OVERLAP_SEEKING)
+    wide = judge.correlations(scales=scales, rotations=rotations, free_agreement=_OVERLAP_SEEKING)
     wide = sorted(wide, key=lambda h: -h.score)[:_WIDE_HYPOTHESES]
     candidates = keypoints + [(h.transform, "walls") for h in wide]
     if not candidates:
@@ -1418,8 +1483,8 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         # best peaks, judged first, can leave the right one unrefined (seed 2's pair 18 is
         # merged from a peak among the correlation's best; judged with the walls' best
         # from the start, it was declined).
-        pool = correlation_hypotheses(a, b, scales=scales[:1], rotations=rotations, fine_deg=_WALL_LED_FINE_DEG,
-                                      peaks=_WALL_LED_PEAKS, max_hypotheses=_WALL_LED_POOL)
+        pool = judge.correlations(scales=scales[:1], rotations=rotations, fine_deg=_WALL_LED_FINE_DEG,
+                                  peaks=_WALL_LED_PEAKS, max_hypotheses=_WALL_LED_POOL)
         walls = _best_peaks(pool, _WALL_LED_OWN_PEAKS, _WALL_LED_OWN_HYPOTHESES)
         details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4)}
         # Poses far below that share cannot be accepted: they are not refined (maps
@@ -1748,15 +1813,24 @@ def align(
     opts = replace(options or AlignOptions(), **overrides)
     if opts.search_from not in ("larger", "a"):
         raise GridMergeError(f"unknown search_from {opts.search_from!r} (use 'larger' or 'a')")
+    return _align(a, b, method, opts, rng, features, extractor)
+
+
+def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, rng, features, extractor,
+           memory: _PairMemory | None = None) -> AlignResult:
+    """:func:`align` with its options checked; ``memory``: what a first search of the
+    same maps, in the same order, learned (for :attr:`Method.coarse_look`'s second search)."""
     t0 = time.perf_counter()
     spec = METHODS[method]
     if spec.order_free and opts.search_from == "larger":
         if not reference_first(a, b):
             # b is the reference: its search, inverted.
-            swapped = align(b, a, method=method, options=replace(opts, search_from="a"), rng=rng,
-                            features=None if features is None else (features[1], features[0]), extractor=extractor)
+            swapped = _align(b, a, method, replace(opts, search_from="a"), rng,
+                             None if features is None else (features[1], features[0]), extractor)
             return _inverted(swapped, a, b, time.perf_counter() - t0)
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if spec.coarse_look and memory is None:
+        memory = _PairMemory.drawn(gen)
     ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
     if fa is None and fb is None and ext is not None and extractor is None:
@@ -1766,7 +1840,8 @@ def align(
     fa = fa if fa is not None else (ext(a) if ext is not None else Features.empty())
     fb = fb if fb is not None else (ext(b) if ext is not None else Features.empty())
     ca, oa, cb, ob = working_maps(a, b, despeckled=spec.verified)
-    est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen)
+    remembered = {} if memory is None else {"memory": memory.of(oa, ob, ca, cb)}
+    est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen, **remembered)
     if est.transform is not None:
         est.transform = crop_to_full(est.transform, oa, ob)
         est.src = est.src + ob
@@ -1813,11 +1888,12 @@ def align(
         details=details,
     )
     if not success and spec.coarse_look and extractor is None:
-        result = _coarse_look(result, a, b, fa, fb, method, opts, rng, t0)
+        result = _coarse_look(result, a, b, fa, fb, method, opts, rng, t0, memory)
     return result
 
 
-def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: str, opts: AlignOptions, rng, t0: float) -> AlignResult:
+def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: str, opts: AlignOptions, rng, t0: float,
+                 memory: _PairMemory | None = None) -> AlignResult:
     """``first``, a declined alignment, searched again with keypoints detected on at
     most ``opts.coarse_look`` pixels (:attr:`AlignOptions.coarse_look`): that search's
     result if it is accepted, ``first`` otherwise; ``details["coarse_look"]`` tells.
@@ -1835,7 +1911,9 @@ def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: s
     coarse = tuple(None if big else f for f, big in zip((fa, fb), larger))
     # The same reference as the first search (``search_from`` is "a" when this is that
     # search's own reference's side; "larger" chooses it again).
-    second = align(a, b, method=method, options=_coarse_options(opts), rng=rng, features=coarse)
+    # The first search's memory: most of this search's candidates other than the
+    # keypoints' are that search's, scored and refined already.
+    second = _align(a, b, method, _coarse_options(opts), rng, coarse, None, memory)
     elapsed = time.perf_counter() - t0
     pixels = int(opts.coarse_look)
     if second.success:

@@ -45,7 +45,7 @@ True
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import cv2
@@ -271,6 +271,7 @@ def correlation_hypotheses(
     free_agreement: float = 0.015,
     sigma: float = 1.0,
     max_hypotheses: int = 20,
+    cache: dict | None = None,
 ) -> list[CorrelationHypothesis]:
     """Candidate transforms b -> a from wall directions and wall-image correlation.
 
@@ -298,6 +299,10 @@ def correlation_hypotheses(
         Smoothing of the coarse images, in coarse cells.
     max_hypotheses : int
         Hypotheses kept per scale.
+    cache : dict, optional
+        Keeps the coarse images and each rotation's peaks, for further calls on the same
+        two maps (pass the same dict; calls that share scales and rotations then compute
+        only the new ones). The results are the same with or without it.
 
     Returns
     -------
@@ -309,20 +314,32 @@ def correlation_hypotheses(
     if not rotations or not a.occupied().any() or not b.occupied().any():
         return []
     factor = min(1.0, size / max(max(a.shape), max(b.shape) * max(scales)))
-    a_img = _channels(a, factor, sigma)
+    cache = {} if cache is None else cache
+
+    def kept(key, make):
+        if key not in cache:
+            cache[key] = make()
+        return cache[key]
+
+    a_img = kept(("a", factor, sigma), lambda: _channels(a, factor, sigma))
     weights = (free_weight, free_agreement)
-    spectra: dict = {}
+    spectra: dict = kept(("spectra", factor, sigma), dict)
     out: list[CorrelationHypothesis] = []
     hb, wb = b.shape
     corners = np.array([[0.0, 0.0], [wb, 0.0], [wb, hb], [0.0, hb]])
     coarse = np.diag([factor, factor, 1.0])
     for s in scales:
         found: list[CorrelationHypothesis] = []
-        b_img = _channels(b, min(1.0, factor * s), sigma)
+        b_img = kept(("b", min(1.0, factor * s), sigma), lambda: _channels(b, min(1.0, factor * s), sigma))
         fb = b_img[0].shape[1] / wb  # b's coarse cells per b pixel
         for base in rotations:
             for half_turn in (0.0, 180.0):
                 for d in fine_deg:
+                    key = ("peaks", factor, sigma, s, base + half_turn + d, peaks, weights)
+                    if key in cache:
+                        # Copies: a caller may tell hypotheses apart by identity.
+                        found.extend(replace(h) for h in cache[key])
+                        continue
                     theta = math.radians(base + half_turn + d)
                     rot = SimilarityTransform(rotation=theta, scale=s)
                     # b's pixels -> rotated, scaled and coarse, shifted to positive coordinates.
@@ -334,10 +351,13 @@ def correlation_hypotheses(
                     m = place @ from_coarse_b
                     shape = (int(math.ceil(hi[0] - lo[0])) + 1, int(math.ceil(hi[1] - lo[1])) + 1)
                     warped = tuple(cv2.warpAffine(x, m[:2], shape, flags=cv2.INTER_LINEAR) for x in b_img)
+                    here = []
                     for dx, dy, value in _peaks(a_img, warped, peaks, 4, weights, spectra=spectra):
                         shift = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
                         full = np.linalg.inv(coarse) @ shift @ place
-                        found.append(CorrelationHypothesis(SimilarityTransform(full), value, math.degrees(theta) % 360.0, s))
+                        here.append(CorrelationHypothesis(SimilarityTransform(full), value, math.degrees(theta) % 360.0, s))
+                    cache[key] = here
+                    found.extend(here)
         # Scores of different scales are not comparable (a smaller b meets fewer of a's
         # cells): each scale keeps its own best.
         out.extend(sorted(found, key=lambda h: -h.score)[:max_hypotheses])
