@@ -791,36 +791,27 @@ class _SearchMemory:
     """What a search from one side of one pair of maps (cut as :func:`working_maps`
     cuts them) learns that depends on the maps and a pose only, kept for a second
     search of the same maps (:attr:`AlignOptions.coarse_look` searches again with other
-    keypoints; most of its other candidates are the first search's).
-
-    Every pose's refinement draws from a generator of its own, seeded by ``seed`` and
-    the pose (:func:`_pose_generator`), so that a pose is refined the same way whatever
-    was searched before it. Small: scores, poses and verifications, no images (the
-    scorer, the refinement's fields and the polish's tables are made again).
+    keypoints; most of its other candidates are the first search's): nothing random,
+    so the second search decides exactly as it would have alone. Small: scores, poses
+    and verifications, no images (the scorer, the refinement's fields and the polish's
+    tables are made again). Refinements are not kept: each draws from its search's
+    random stream, so the same pose refined by another search may differ.
     """
 
-    seed: int
     quick: dict = field(default_factory=dict)  # pose -> (wall agreement, weighed, shared)
-    refined: dict = field(default_factory=dict)  # (pose, reach) -> refined pose
     verified: dict = field(default_factory=dict)  # pose -> Verification
-    polished: dict = field(default_factory=dict)  # pose -> its polish (whatever the score)
+    polished: dict = field(default_factory=dict)  # pose -> its polish by ICP (whatever the score)
     correlations: dict = field(default_factory=dict)  # the correlation's coarse images and peaks
 
 
 class _PairMemory:
     """The two sides' :class:`_SearchMemory` of one pair of maps, given in one order:
-    what :func:`align`'s first search hands to its coarser look
-    (:func:`_coarse_look`). ``cut``: the working maps' offsets and shapes; a memory of
-    other cuts starts afresh."""
+    what :func:`align`'s first search hands to its coarser look (:func:`_coarse_look`).
+    A memory of other cuts of the maps starts afresh."""
 
-    def __init__(self, seed: int):
-        self.seed = int(seed)
+    def __init__(self):
         self._cut: tuple | None = None
         self._sides: dict[bool, _SearchMemory] = {}
-
-    @classmethod
-    def drawn(cls, gen: np.random.Generator) -> "_PairMemory":
-        return cls(int(gen.integers(0, 2**63 - 1)))
 
     def of(self, oa: np.ndarray, ob: np.ndarray, a: OccupancyGrid, b: OccupancyGrid) -> "_PairMemory":
         """This memory, for the working maps ``a``, ``b`` cut at ``oa``, ``ob``
@@ -832,37 +823,24 @@ class _PairMemory:
 
     def side(self, reverse: bool) -> _SearchMemory:
         """The memory of the search from a's side, or from b's when ``reverse``."""
-        if reverse not in self._sides:
-            self._sides[reverse] = _SearchMemory(self.seed + (1 if reverse else 0))
-        return self._sides[reverse]
-
-
-def _pose_generator(seed: int, key: bytes) -> np.random.Generator:
-    """The generator of one refinement: seeded by ``seed`` and the refinement's key
-    (the pose's parameters and the reach, as bytes)."""
-    words = np.frombuffer(key + bytes(-len(key) % 4), dtype=np.uint32)
-    return np.random.default_rng([int(seed), *words.tolist()])
+        return self._sides.setdefault(reverse, _SearchMemory())
 
 
 class _Judge:
     """Scores, refines and ranks candidate transforms of one pair of maps, remembering
     what it has computed (the keypoints-first stage and the full search share it, and
-    with ``memory`` a second search of the same maps: :class:`_SearchMemory`).
-    ``rng``: draws the memory's seed when no memory is given."""
+    with ``memory`` a second search of the same maps: :class:`_SearchMemory`)."""
 
-    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng=None, *,
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng, *,
                  pool: ThreadPoolExecutor | None = None, memory: _SearchMemory | None = None):
-        self.a, self.b, self.opts = a, b, opts
-        if memory is None:
-            gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-            memory = _PairMemory.drawn(gen).side(False)
-        self.memory = memory
+        self.a, self.b, self.opts, self.rng = a, b, opts, rng
+        self.memory = memory = _SearchMemory() if memory is None else memory
         self.pool = pool  # a helper thread (work with no random draw only), or None
         self._scorer: Future | None = None
         self._fields: Future | None = None
         self.box = b.corners()
         self._quick: dict = memory.quick
-        self._memo: dict = memory.refined
+        self._memo: dict = {}
         self._verified: dict = memory.verified
         self._known_b: np.ndarray | None = None  # a sample of b's known cells (rival)
         self._shared: dict = {}  # pose -> that sample moved into a, and which land on a's known cells
@@ -879,6 +857,7 @@ class _Judge:
                 f.result()  # a task of the helper thread ends before its result is dropped
         self._scorer = self._fields = None
         self._icp = None
+        self._memo.clear()
 
     def correlations(self, **kwargs) -> list:
         """:func:`gridmerge.correlate.correlation_hypotheses` of the maps with ``kwargs``,
@@ -944,18 +923,19 @@ class _Judge:
             self._quick[k] = (q.wall_agreement, q.wall_agreement * support * min(1.0, q.shared) ** 0.25, q.shared)
         return self._quick[k]
 
-    def _refined(self, t: AffineTransform, max_shift: float | None = None):
+    def _refined(self, t: AffineTransform, max_shift: float | None = None, *, memo: dict | None = None, rng=None):
         """``t`` refined against the maps (or ``t`` itself when the refinement is not
         accepted) within ``max_shift`` (default :data:`_REFINE_REACH`); one refinement
-        per transform and reach, whatever the score, drawing from a generator of its own
-        (:func:`_pose_generator`)."""
+        per transform and reach (in ``memo``, default the judge's), whatever the score,
+        drawing from ``rng`` (default the judge's)."""
         max_shift = _REFINE_REACH if max_shift is None else max_shift
-        k = self._key(t) + np.float64(max_shift).tobytes()
-        if k not in self._memo:
-            refined, report = refine_direct(self.a, self.b, t, rng=_pose_generator(self.memory.seed, k), cache=self.fields,
-                                            max_shift=max_shift, scale_prior=scale_prior(self.a, self.b, t, self.opts))
-            self._memo[k] = refined if report.accepted else t
-        return self._memo[k]
+        memo = self._memo if memo is None else memo
+        k = (self._key(t), max_shift)
+        if k not in memo:
+            refined, report = refine_direct(self.a, self.b, t, rng=self.rng if rng is None else rng, cache=self.fields, max_shift=max_shift,
+                                            scale_prior=scale_prior(self.a, self.b, t, self.opts))
+            memo[k] = refined if report.accepted else t
+        return memo[k]
 
     def polished(self, t: AffineTransform, score) -> tuple[float, AffineTransform]:
         """``(score, pose)``: refined pose ``t`` polished by ICP on the walls
@@ -1000,12 +980,13 @@ class _Judge:
 
     def settle(self, candidates: list[tuple[AffineTransform, str]]):
         """``(wall, best, kind, runner_up, verification)`` of the best of ``candidates``,
-        refined alone. The runner-up is the best unrefined score of a clearly different
-        candidate."""
+        refined alone: a quick look that leaves the random stream of :meth:`decide` as it
+        was (the refinement draws from a generator of its own). The runner-up is the best
+        unrefined score of a clearly different candidate."""
         scored = sorted(((self.quick(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
         wall, best, kind = scored[0]
         if self.opts.refine:
-            best = self._refined(best)
+            best = self._refined(best, memo={}, rng=_side_generator(self.rng))
             wall = self.quick(best)
         verification = self._later(self._verify, best)  # while its rivals are sought
         runner_up = max((w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)), default=0.0)
@@ -1194,6 +1175,14 @@ def _ring(params: np.ndarray, px: float, n: int) -> list[np.ndarray]:
     return [SimilarityTransform(translation=(px * math.cos(u), px * math.sin(u))).params @ params for u in angles]
 
 
+def _side_generator(gen: np.random.Generator) -> np.random.Generator:
+    """A generator derived from ``gen`` without drawing from it."""
+    try:
+        return gen.spawn(1)[0]
+    except (AttributeError, TypeError, ValueError):  # no seed sequence to spawn from
+        return np.random.default_rng(0x5EED)
+
+
 def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng, memory: _PairMemory | None = None) -> Estimate:
     # The judge's helper thread makes its tools, which need only the maps, while the
     # keypoints are matched and the first candidates scored, and verifies the poses it
@@ -1213,9 +1202,8 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool, memory: _PairMemory
     how far its pose moves the shared part (``moved_px``), its ``source``, whether it is
     the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
     and ``details["first_side"]`` holds a's side's confidence and source."""
-    if memory is None:
-        memory = _PairMemory.drawn(rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng))
-    judge = _Judge(a, b, opts, pool=pool, memory=memory.side(False))
+    memory = _PairMemory() if memory is None else memory
+    judge = _Judge(a, b, opts, rng, pool=pool, memory=memory.side(False))
     second = _SecondLook(a, b, opts, (fa.blurred, fb.blurred)) if opts.second_look > 0 else None
     forward = _hybrid_search(judge, fa, fb, second)
     tau = opts.one_sided_confidence
@@ -1226,10 +1214,12 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool, memory: _PairMemory
         # Declined, and sharing too little for the same merge found from b's side to be
         # taken (most pairs of a fleet, which do not overlap): not sought again.
         return forward
-    # From b's side, with a memory of its own; the first search's tools are let go
-    # first (two maps' worth of fields and tables).
+    # From b's side, with a generator and a memory of its own (the first search's draws
+    # stay as they were); the first search's tools are let go first (two maps' worth of
+    # fields and tables).
     judge.release()
-    reverse = _hybrid_search(_Judge(b, a, opts, pool=pool, memory=memory.side(True)), fb, fa, None if second is None else second.swapped())
+    reverse = _hybrid_search(_Judge(b, a, opts, _side_generator(rng), pool=pool, memory=memory.side(True)), fb, fa,
+                             None if second is None else second.swapped())
     other = reverse.confidence or 0.0
     back = None if reverse.transform is None else reverse.transform.inverse
     moved = math.inf if back is None else judge.moved(forward.transform, back)
@@ -1830,7 +1820,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
             return _inverted(swapped, a, b, time.perf_counter() - t0)
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     if spec.coarse_look and memory is None:
-        memory = _PairMemory.drawn(gen)
+        memory = _PairMemory()
     ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
     if fa is None and fb is None and ext is not None and extractor is None:
@@ -1912,7 +1902,7 @@ def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: s
     # The same reference as the first search (``search_from`` is "a" when this is that
     # search's own reference's side; "larger" chooses it again).
     # The first search's memory: most of this search's candidates other than the
-    # keypoints' are that search's, scored and refined already.
+    # keypoints' are that search's, scored already.
     second = _align(a, b, method, _coarse_options(opts), rng, coarse, None, memory)
     elapsed = time.perf_counter() - t0
     pixels = int(opts.coarse_look)
