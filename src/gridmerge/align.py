@@ -254,8 +254,9 @@ class AlignOptions:
         cross-building pairs (docs/benchmarks.md, sixteenth session). Pairs whose maps'
         keypoint images are no larger than this (nothing would change), and pairs whose
         declined pose shares less than 10 % of the smaller map (maps that do not overlap,
-        most pairs of a fleet), are not searched again. Declined pairs take about twice
-        the time; 0 never searches again. :func:`gridmerge.merge` with three maps or more
+        most pairs of a fleet), are not searched again. Declined pairs take up to about
+        twice the time (the second search reuses the first one's wall scores, ICP
+        polishes and correlation peaks); 0 never searches again. :func:`gridmerge.merge` with three maps or more
         searches again only the declined pairs of the maps its placement leaves out.
     """
 
