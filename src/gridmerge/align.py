@@ -793,10 +793,12 @@ class _SearchMemory:
     cuts them) learns that depends on the maps and a pose only, kept for a second
     search of the same maps (:attr:`AlignOptions.coarse_look` searches again with other
     keypoints; most of its other candidates are the first search's): nothing random,
-    so the second search decides exactly as it would have alone. Small: scores, poses
-    and verifications, no images (the scorer, the refinement's fields and the polish's
-    tables are made again). Refinements are not kept: each draws from its search's
-    random stream, so the same pose refined by another search may differ.
+    so the second search decides exactly as it would have alone. Scores, poses and
+    verifications, and the correlation's coarse images (about 200 px) with a's spectra:
+    24 MB for both sides of a 1585 x 1585 pair, none of the maps' full-resolution
+    images (the scorer, the refinement's fields and the polish's tables are made
+    again). Refinements are not kept: each draws from its search's random stream, so the
+    same pose refined by another search may differ.
     """
 
     quick: dict = field(default_factory=dict)  # pose -> (wall agreement, weighed, shared)
