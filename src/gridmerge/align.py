@@ -255,8 +255,8 @@ class AlignOptions:
         keypoint images are no larger than this (nothing would change), and pairs whose
         declined pose shares less than 10 % of the smaller map (maps that do not overlap,
         most pairs of a fleet), are not searched again. Declined pairs take up to about
-        twice the time (the second search reuses the first one's wall scores, ICP
-        polishes and correlation peaks); 0 never searches again. :func:`gridmerge.merge` with three maps or more
+        twice the time (the second search reuses the first one's wall scores,
+        refinements, ICP polishes and correlation peaks); 0 never searches again. :func:`gridmerge.merge` with three maps or more
         searches again only the declined pairs of the maps its placement leaves out.
     """
 
@@ -600,7 +600,7 @@ def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         return Estimate(None, inl, src, dst, "no consistent transform among the matches")
     details: dict = {}
     if opts.refine and inl.sum() >= 2:
-        refined, report = refine_direct(a, b, model, rng=rng)
+        refined, report = refine_direct(a, b, model)
         details["refine"] = {
             "accepted": report.accepted,
             "iterations": report.iterations,
@@ -671,7 +671,7 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         fields: dict = {}
         for k in range(min(_REFINE_TOP, len(scored))):
             _, model, inl, _, support = scored[k]
-            refined, report = refine_direct(a, b, model, rng=rng, cache=fields)
+            refined, report = refine_direct(a, b, model, cache=fields)
             if report.accepted:
                 scored[k] = score(refined, refined.residuals(src, dst) < opts.residual_threshold, support)
     scored.sort(key=lambda t: -t[0])
@@ -793,15 +793,15 @@ class _SearchMemory:
     cuts them) learns that depends on the maps and a pose only, kept for a second
     search of the same maps (:attr:`AlignOptions.coarse_look` searches again with other
     keypoints; most of its other candidates are the first search's): nothing random,
-    so the second search decides exactly as it would have alone. Scores, poses and
-    verifications, and the correlation's coarse images (about 200 px) with a's spectra:
-    24 MB for both sides of a 1585 x 1585 pair, none of the maps' full-resolution
-    images (the scorer, the refinement's fields and the polish's tables are made
-    again). Refinements are not kept: each draws from its search's random stream, so the
-    same pose refined by another search may differ.
+    so the second search decides exactly as it would have alone. Scores, refinements,
+    polishes and verifications of poses, and the correlation's coarse images (about
+    200 px) with a's spectra: 24 MB for both sides of a 1585 x 1585 pair, none of the
+    maps' full-resolution images (the scorer, the refinement's fields and the polish's
+    tables are made again when needed).
     """
 
     quick: dict = field(default_factory=dict)  # pose -> (wall agreement, weighed, shared)
+    refined: dict = field(default_factory=dict)  # (pose, reach) -> its refinement (or the pose)
     verified: dict = field(default_factory=dict)  # pose -> Verification
     polished: dict = field(default_factory=dict)  # pose -> its polish by ICP (whatever the score)
     correlations: dict = field(default_factory=dict)  # the correlation's coarse images and peaks
@@ -834,16 +834,16 @@ class _Judge:
     what it has computed (the keypoints-first stage and the full search share it, and
     with ``memory`` a second search of the same maps: :class:`_SearchMemory`)."""
 
-    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, rng, *,
+    def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, *,
                  pool: ThreadPoolExecutor | None = None, memory: _SearchMemory | None = None):
-        self.a, self.b, self.opts, self.rng = a, b, opts, rng
+        self.a, self.b, self.opts = a, b, opts
         self.memory = memory = _SearchMemory() if memory is None else memory
-        self.pool = pool  # a helper thread (work with no random draw only), or None
+        self.pool = pool  # a helper thread, or None
         self._scorer: Future | None = None
         self._fields: Future | None = None
         self.box = b.corners()
         self._quick: dict = memory.quick
-        self._memo: dict = {}
+        self._refinements: dict = memory.refined
         self._verified: dict = memory.verified
         self._known_b: np.ndarray | None = None  # a sample of b's known cells (rival)
         self._shared: dict = {}  # pose -> that sample moved into a, and which land on a's known cells
@@ -860,7 +860,6 @@ class _Judge:
                 f.result()  # a task of the helper thread ends before its result is dropped
         self._scorer = self._fields = None
         self._icp = None
-        self._memo.clear()
 
     def correlations(self, **kwargs) -> list:
         """:func:`gridmerge.correlate.correlation_hypotheses` of the maps with ``kwargs``,
@@ -873,7 +872,7 @@ class _Judge:
 
     def prepare(self) -> None:
         """Make what every candidate will need: the wall scorer, then the refinement's
-        fields for the maps' resolution ratio (the usual scale). No random draw. In the
+        fields for the maps' resolution ratio (the usual scale). In the
         helper thread when there is one, the scorer first (scoring the first candidates
         needs it alone); the judge waits for each when it first needs it."""
 
@@ -926,19 +925,18 @@ class _Judge:
             self._quick[k] = (q.wall_agreement, q.wall_agreement * support * min(1.0, q.shared) ** 0.25, q.shared)
         return self._quick[k]
 
-    def _refined(self, t: AffineTransform, max_shift: float | None = None, *, memo: dict | None = None, rng=None):
+    def _refined(self, t: AffineTransform, max_shift: float | None = None):
         """``t`` refined against the maps (or ``t`` itself when the refinement is not
         accepted) within ``max_shift`` (default :data:`_REFINE_REACH`); one refinement
-        per transform and reach (in ``memo``, default the judge's), whatever the score,
-        drawing from ``rng`` (default the judge's)."""
+        per transform and reach, whatever the score (the memory keeps it: a refinement
+        draws nothing at random, so any search of these maps would find the same)."""
         max_shift = _REFINE_REACH if max_shift is None else max_shift
-        memo = self._memo if memo is None else memo
         k = (self._key(t), max_shift)
-        if k not in memo:
-            refined, report = refine_direct(self.a, self.b, t, rng=self.rng if rng is None else rng, cache=self.fields, max_shift=max_shift,
+        if k not in self._refinements:
+            refined, report = refine_direct(self.a, self.b, t, cache=self.fields, max_shift=max_shift,
                                             scale_prior=scale_prior(self.a, self.b, t, self.opts))
-            memo[k] = refined if report.accepted else t
-        return memo[k]
+            self._refinements[k] = refined if report.accepted else t
+        return self._refinements[k]
 
     def polished(self, t: AffineTransform, score) -> tuple[float, AffineTransform]:
         """``(score, pose)``: refined pose ``t`` polished by ICP on the walls
@@ -983,13 +981,12 @@ class _Judge:
 
     def settle(self, candidates: list[tuple[AffineTransform, str]]):
         """``(wall, best, kind, runner_up, verification)`` of the best of ``candidates``,
-        refined alone: a quick look that leaves the random stream of :meth:`decide` as it
-        was (the refinement draws from a generator of its own). The runner-up is the best
-        unrefined score of a clearly different candidate."""
+        refined alone: a quick look (:meth:`decide` reuses its refinement). The
+        runner-up is the best unrefined score of a clearly different candidate."""
         scored = sorted(((self.quick(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
         wall, best, kind = scored[0]
         if self.opts.refine:
-            best = self._refined(best, memo={}, rng=_side_generator(self.rng))
+            best = self._refined(best)
             wall = self.quick(best)
         verification = self._later(self._verify, best)  # while its rivals are sought
         runner_up = max((w for w, t, _ in scored if self.far_apart(best, t, _OTHER_POSE_PX)), default=0.0)
@@ -1178,26 +1175,20 @@ def _ring(params: np.ndarray, px: float, n: int) -> list[np.ndarray]:
     return [SimilarityTransform(translation=(px * math.cos(u), px * math.sin(u))).params @ params for u in angles]
 
 
-def _side_generator(gen: np.random.Generator) -> np.random.Generator:
-    """A generator derived from ``gen`` without drawing from it."""
-    try:
-        return gen.spawn(1)[0]
-    except (AttributeError, TypeError, ValueError):  # no seed sequence to spawn from
-        return np.random.default_rng(0x5EED)
-
-
 def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng, memory: _PairMemory | None = None) -> Estimate:
+    # No random choice: ``rng`` is not drawn from (the same maps and options give the
+    # same result whatever the seed).
     # The judge's helper thread makes its tools, which need only the maps, while the
     # keypoints are matched and the first candidates scored, and verifies the poses it
     # settles on while their rivals are sought (OpenCV and numpy leave the interpreter
     # while they work).
     if (os.cpu_count() or 1) < 2:
-        return _both_sides(a, b, fa, fb, opts, rng, None, memory)
+        return _both_sides(a, b, fa, fb, opts, None, memory)
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-judge") as pool:
-        return _both_sides(a, b, fa, fb, opts, rng, pool, memory)
+        return _both_sides(a, b, fa, fb, opts, pool, memory)
 
 
-def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool, memory: _PairMemory | None = None) -> Estimate:
+def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | None = None) -> Estimate:
     """The search from a's side; below ``opts.one_sided_confidence``, judged with the
     search from b's side as well (:attr:`AlignOptions.one_sided_confidence`).
 
@@ -1206,7 +1197,7 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool, memory: _PairMemory
     the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
     and ``details["first_side"]`` holds a's side's confidence and source."""
     memory = _PairMemory() if memory is None else memory
-    judge = _Judge(a, b, opts, rng, pool=pool, memory=memory.side(False))
+    judge = _Judge(a, b, opts, pool=pool, memory=memory.side(False))
     second = _SecondLook(a, b, opts, (fa.blurred, fb.blurred)) if opts.second_look > 0 else None
     forward = _hybrid_search(judge, fa, fb, second)
     tau = opts.one_sided_confidence
@@ -1217,11 +1208,10 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, rng, pool, memory: _PairMemory
         # Declined, and sharing too little for the same merge found from b's side to be
         # taken (most pairs of a fleet, which do not overlap): not sought again.
         return forward
-    # From b's side, with a generator and a memory of its own (the first search's draws
-    # stay as they were); the first search's tools are let go first (two maps' worth of
-    # fields and tables).
+    # From b's side, with a memory of its own; the first search's tools are let go
+    # first (two maps' worth of fields and tables).
     judge.release()
-    reverse = _hybrid_search(_Judge(b, a, opts, _side_generator(rng), pool=pool, memory=memory.side(True)), fb, fa,
+    reverse = _hybrid_search(_Judge(b, a, opts, pool=pool, memory=memory.side(True)), fb, fa,
                              None if second is None else second.swapped())
     other = reverse.confidence or 0.0
     back = None if reverse.transform is None else reverse.transform.inverse
@@ -1789,7 +1779,9 @@ def align(
     options : AlignOptions, optional
         Settings; keyword ``overrides`` change single fields (``align(a, b, ratio=0.7)``).
     rng : int or numpy.random.Generator
-        Seed of every random choice: the same seed gives the same result.
+        Seed of every random choice: the same seed gives the same result. The default
+        method makes none (any seed gives its result); the baselines' RANSAC and the
+        paper's consensus draw from it.
     features : (Features or None, Features or None), optional
         Precomputed features of a and b (reused when merging many maps).
     extractor : FeatureExtractor, optional

@@ -424,7 +424,7 @@ def _run_pair(job: _PairJob) -> AlignResult:
         return _coarse_look(job.first, job.a, job.b, fa, fb, job.method, job.options, job.seed, t0)
     p = job.prior
     if p is not None:
-        return reverify(job.a, job.b, p.transform, method=job.method, options=job.options, rng=job.seed,
+        return reverify(job.a, job.b, p.transform, method=job.method, options=job.options,
                         runner_up_ratio=p.runner_up_ratio, max_confidence=p.confidence, features=job.features)
     return align(job.a, job.b, method=job.method, options=job.options, rng=job.seed, features=job.features)
 
@@ -448,7 +448,6 @@ def reverify(
     *,
     method: str = "hybrid",
     options: AlignOptions | None = None,
-    rng=0,
     runner_up_ratio: float = 1.0,
     max_confidence: float = 1.0,
     max_shift: float = 12.0,
@@ -487,7 +486,6 @@ def reverify(
         ``details["reverified"]`` is ``True``; declined when the maps no longer agree.
     """
     opts = options or AlignOptions()
-    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     t0 = time.perf_counter()
     ca, oa, cb, ob = working_maps(a, b)
     t = full_to_crop(prior, oa, ob)
@@ -495,7 +493,7 @@ def reverify(
         t = SimilarityTransform.from_estimate(cb.corners(), t(cb.corners())) or SimilarityTransform(t.params)
     shift = 0.0
     if opts.refine:
-        refined, report = refine_direct(ca, cb, t, rng=gen, max_shift=max_shift, scale_prior=scale_prior(ca, cb, t, opts))
+        refined, report = refine_direct(ca, cb, t, max_shift=max_shift, scale_prior=scale_prior(ca, cb, t, opts))
         if report.accepted:
             t, shift = refined, float(report.shift_px)
     v = verify(ca, cb, t, tolerance=opts.wall_tolerance)

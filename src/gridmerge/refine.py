@@ -22,7 +22,9 @@ well, so that time and memory stay bounded: levels smoothed by at least
 :data:`COARSE_SIGMA` of a's pixels run on both maps reduced by 2 (a Gaussian prefilter,
 then every other cell; the smoothing, not the cells, limits those levels' precision), and
 the finest level runs at full resolution with b's cells judged block by block from a
-random pool that the candidates share, and a's field computed on the box they reach only.
+pool that the candidates share, and a's field computed on the box they reach only.
+Nothing is drawn at random: where b has more cells than a level uses, an evenly spread
+subset is taken, so a refinement does not depend on the ones made before it.
 Smaller maps run every level at full resolution, exactly as the refinement was first
 written (the reduced levels converge to slightly different poses on real maps that bend,
 which changes borderline decisions).
@@ -290,18 +292,20 @@ def _landing(a: OccupancyGrid, params: np.ndarray, x: np.ndarray, y: np.ndarray,
 _POOL_CHUNK = 2048
 
 
-def _fine_points(a: OccupancyGrid, b: OccupancyGrid, params: np.ndarray, coarse_cells, coarse: int, sigma: float, max_points: int, gen, pool: dict):
+def _fine_points(a: OccupancyGrid, b: OccupancyGrid, params: np.ndarray, coarse_cells, coarse: int, sigma: float, max_points: int, pool: dict):
     """Up to ``max_points`` full-resolution cells of b near structure (as
     :func:`_b_points` would select them) that land on a's known cells under ``params``,
     and their field values.
 
-    The cells are drawn at random among the blocks of the structure found at reduced
-    resolution (``coarse_cells``, reduced by ``coarse``) and judged block by block at
-    full resolution; ``pool`` keeps what was judged, for the next candidate.
+    The blocks of the structure found at reduced resolution (``coarse_cells``, reduced
+    by ``coarse``) are judged at full resolution a chunk at a time, in an order spread
+    over the whole map (:func:`_spread_order`), until enough cells land; ``pool`` keeps
+    what was judged, for the next candidate. No random draw: a candidate gets the same
+    cells whichever candidates came before it.
     """
     cx, cy = coarse_cells
     if "order" not in pool:
-        pool.update(order=gen.permutation(len(cx)), next=0, chunks=[])
+        pool.update(order=_spread_order(len(cx)), next=0, chunks=[])
     kept_x, kept_y, kept_t = [], [], []
     count, i = 0, 0
     while count < max_points:
@@ -323,9 +327,20 @@ def _fine_points(a: OccupancyGrid, b: OccupancyGrid, params: np.ndarray, coarse_
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     x, y, t = (np.concatenate(c) for c in (kept_x, kept_y, kept_t))
     if len(x) > max_points:
-        pick = np.sort(gen.choice(len(x), max_points, replace=False))
+        pick = _evenly(len(x), max_points)
         x, y, t = x[pick], y[pick], t[pick]
     return x, y, t
+
+
+def _evenly(n: int, k: int) -> np.ndarray:
+    """``k`` of the indices ``0 .. n - 1`` (``k <= n``), evenly spread and increasing."""
+    return (np.arange(k, dtype=np.int64) * n) // k
+
+
+def _spread_order(n: int) -> np.ndarray:
+    """A permutation of ``0 .. n - 1`` whose every prefix is spread over the whole range
+    (the golden-ratio sequence): the first blocks of b judged lie all over the map."""
+    return np.argsort((np.arange(n) * 0.6180339887498949) % 1.0, kind="stable")
 
 
 def _b_level(sigma_a: float, factor_a: int, scale: float) -> tuple[float, int]:
@@ -399,7 +414,6 @@ def refine_direct(
     iterations: int = 10,
     max_points: int = 20000,
     max_shift: float = 12.0,
-    rng=0,
     cache: dict | None = None,
     factors=None,
     scale_prior: tuple[float, float] | None = None,
@@ -416,12 +430,13 @@ def refine_direct(
     iterations : int
         Gauss-Newton steps per level at most.
     max_points : int
-        Cells of b sampled per level at most (a seeded random subset beyond that).
+        Cells of b used per level at most: beyond that, a subset evenly spread over
+        them (about every k-th, row by row). No random draw: a transform's refinement
+        does not depend on what was refined before it, and below
+        :data:`LARGE_CELLS` every transform is fitted to the same cells.
     max_shift : float
         How far (a's pixels) b's corners may move. A refinement that would lead farther
         (whose last step was held back by this bound) is refused.
-    rng : int or numpy.random.Generator
-        Seed of the subsampling.
     cache : dict, optional
         Smoothed fields from earlier calls on the same two maps (pass the same dict to
         refine several candidates cheaply).
@@ -441,7 +456,6 @@ def refine_direct(
     report : RefineReport
         ``rms_before`` and ``rms_after`` are measured at the last level.
     """
-    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     if max(*a.shape, *b.shape) >= _REMAP_MAX:
         # OpenCV's remap cannot sample images this long; keep the initial estimate.
         return initial, RefineReport(False, 0, 0, 0.0, math.nan, math.nan)
@@ -466,7 +480,7 @@ def refine_direct(
             # field on the box they can reach only.
             cand = _level_points(b, cache, sigma_b, 2)
             pool = _cached(cache, ("b pool", sigma_b, 2), dict)
-            xs, ys, target = _fine_points(a, b, p, cand[:2], 2, sigma_b, max_points, gen, pool)
+            xs, ys, target = _fine_points(a, b, p, cand[:2], 2, sigma_b, max_points, pool)
             if len(xs) < 20:
                 continue  # nothing to fit at this smoothing: the next level may have
             q = np.stack([xs, ys], axis=1) @ p[:2, :2].T + p[:2, 2]
@@ -480,7 +494,7 @@ def refine_direct(
             if len(xs) < 20:
                 continue  # nothing to fit at this smoothing: the next level may have
             if len(xs) > max_points:
-                pick = np.sort(gen.choice(len(xs), max_points, replace=False))
+                pick = _evenly(len(xs), max_points)
                 xs, ys, target = xs[pick], ys[pick], target[pick]
         pts = np.stack([xs, ys], axis=1).astype(np.float64)
         npts = len(pts)
