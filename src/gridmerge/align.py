@@ -1897,7 +1897,7 @@ def _coarse_look(first: AlignResult, a, b, fa: Features, fb: Features, method: s
     # The same reference as the first search (``search_from`` is "a" when this is that
     # search's own reference's side; "larger" chooses it again).
     # The first search's memory: most of this search's candidates other than the
-    # keypoints' are that search's, scored already.
+    # keypoints' are that search's, scored and refined already.
     second = _align(a, b, method, _coarse_options(opts), rng, coarse, None, memory)
     elapsed = time.perf_counter() - t0
     pixels = int(opts.coarse_look)
