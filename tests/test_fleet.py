@@ -8,7 +8,7 @@ import pytest
 
 import gridmerge
 from gridmerge import Merger
-from gridmerge.bench.fleet import earlier_version, placement_errors, simulate_fleet
+from gridmerge.bench.fleet import Fleet, earlier_version, placement_errors, simulate_fleet
 from gridmerge.errors import GridMergeError
 
 
@@ -82,27 +82,32 @@ def test_reference_by_name_changes_the_frame(fleet):
 
 
 def test_merger_update_reuses_unchanged_work(fleet):
-    earlier = earlier_version(fleet.maps[2], keep=0.6, direction_deg=30)
-    assert earlier.shape != fleet.maps[2].shape  # grown maps move their origin
+    # Four robots whose maps all overlap (robot3's map grows): the mechanics of the
+    # eight-robot fleet at a seventh of its search.
+    team = Fleet(maps=[fleet.maps[k] for k in (0, 2, 5, 7)], to_source=[fleet.to_source[k] for k in (0, 2, 5, 7)],
+                 source=fleet.source)
+    earlier = earlier_version(team.maps[1], keep=0.6, direction_deg=30)
+    assert earlier.shape != team.maps[1].shape  # grown maps move their origin
     merger = Merger()
-    for k, g in enumerate(fleet.maps):
-        merger.update(earlier if k == 2 else g)
+    for k, g in enumerate(team.maps):
+        merger.update(earlier if k == 1 else g)
     first = merger.merge()
-    assert first.success and first.stats.features_computed == 8 and first.stats.pairs_searched == 28
+    assert first.success and first.unplaced == []
+    assert first.stats.features_computed == 4 and first.stats.pairs_searched == 6
     # Robot 3's map grew: only its features are recomputed; its pairs are re-verified,
     # nothing is searched again.
-    merger.update(fleet.maps[2])
+    merger.update(team.maps[1])
     second = merger.merge()
     assert second.success and second.unplaced == []
     s = second.stats
-    assert s.features_computed == 1 and s.pairs_searched == 0 and s.pairs_reused == 21
+    assert s.features_computed == 1 and s.pairs_searched == 0 and s.pairs_reused == 3 and s.pairs_reverified == 3
     assert s.align_s < 0.25 * first.stats.align_s
-    errors = placement_errors(fleet, second.transforms)
+    errors = placement_errors(team, second.transforms)
     assert max(errors) <= 2.0, errors
-    assert {p.how for p in second.pairs if 2 in (p.i, p.j)} <= {"reverify", "predict"}
+    assert {p.how for p in second.pairs if 1 in (p.i, p.j)} <= {"reverify", "predict"}
     # Nothing changed: nothing is computed.
     third = merger.merge()
-    assert third.stats.features_computed == 0 and third.stats.pairs_reused == 28 and third.stats.align_s == 0.0
+    assert third.stats.features_computed == 0 and third.stats.pairs_reused == 6 and third.stats.align_s == 0.0
     for s_, t in zip(second.transforms, third.transforms):
         np.testing.assert_allclose(s_.params, t.params)
 
