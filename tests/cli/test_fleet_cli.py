@@ -51,7 +51,8 @@ def _run(capsys, *args, cwd=None):
 
 @pytest.fixture(scope="module")
 def bag_merge(fleet_dir, tmp_path_factory):
-    """The whole sample bag merged once: JSON, merged map, ROS 2 out-bag, picture."""
+    """The whole sample bag merged once: JSON, merged map, ROS 2 out-bag, picture (on two
+    worker processes, which give the same merge as one: test_workers_give_the_same_merge)."""
     import contextlib
     import io
 
@@ -59,7 +60,7 @@ def bag_merge(fleet_dir, tmp_path_factory):
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         code = main(["merge", str(fleet_dir / "fleet.bag"), "-o", str(out / "merged.yaml"), "--json",
-                     "--out-bag", str(out / "merged_bag"), "--plot", str(out / "fleet.png")])
+                     "--out-bag", str(out / "merged_bag"), "--plot", str(out / "fleet.png"), "--workers", "2"])
     return code, json.loads(buf.getvalue()), out
 
 
