@@ -44,6 +44,52 @@ def test_knn_shapes_and_empty_inputs():
     assert idxs.shape == (0, 2)
 
 
+def _direct(d1, d2, k):
+    """The k nearest by float64 distances of every pair, ties to the lower index."""
+    dist = np.sqrt(((d1[:, None, :].astype(np.float64) - d2[None].astype(np.float64)) ** 2).sum(axis=2))
+    order = np.argsort(dist, axis=1, kind="stable")[:, :k]
+    return np.take_along_axis(dist, order, axis=1), order
+
+
+def test_exhaustive_search_is_exact_on_integer_descriptors_and_breaks_ties_by_index(monkeypatch):
+    import gridmerge.matching as matching
+
+    rng = np.random.default_rng(3)
+    # SIFT-like: integer-valued floats up to 255, where float32 distances are exact.
+    d1 = np.round(255 * rng.random((120, 128)) ** 3).astype(np.float32)
+    d2 = np.round(255 * rng.random((90, 128)) ** 3).astype(np.float32)
+    d2[40] = d2[7]  # a twin: equally near to every descriptor
+    d1[3] = d2[7]
+    monkeypatch.setattr(matching, "_BLOCK_PAIRS", 1000)  # several blocks of rows
+    dist, idx = knn(d1, d2, 3, method="brute")
+    want_d, want_i = _direct(d1, d2, 3)
+    np.testing.assert_array_equal(idx, want_i)
+    np.testing.assert_array_equal(dist, want_d)  # not approximately: exactly
+    assert idx[3, 0] == 7 and idx[3, 1] == 40 and dist[3, 0] == dist[3, 1] == 0.0
+    # The twins make the nearest ambiguous: the ratio test drops row 3.
+    _, pairs = match_snn(d1, d2, ratio=0.8, method="brute")
+    assert 3 not in pairs[:, 0]
+    # Descriptors that are not integers: compared in float64.
+    f1, f2 = d1 / 7.3, d2 / 7.3
+    dist, idx = knn(f1, f2, 2, method="brute")
+    want_d, want_i = _direct(f1, f2, 2)
+    np.testing.assert_array_equal(idx[:, 0], want_i[:, 0])
+    np.testing.assert_allclose(dist, want_d, rtol=1e-9)
+
+
+def test_flann_is_approximate_where_the_exhaustive_search_is_exact():
+    rng = np.random.default_rng(4)
+    d1 = np.round(255 * rng.random((400, 128)) ** 4).astype(np.float32)
+    d2 = np.round(255 * rng.random((300, 128)) ** 4).astype(np.float32)
+    (bd, bi), (fd, fi) = knn(d1, d2, 2, method="brute"), knn(d1, d2, 2, method="flann")
+    assert not np.array_equal(bi, fi)
+    # FLANN never finds a nearer neighbour than the exhaustive search.
+    assert (fd[:, 0] >= bd[:, 0] - 1e-3).all()
+    want_d, want_i = _direct(d1, d2, 2)
+    np.testing.assert_array_equal(bi, want_i)
+    np.testing.assert_array_equal(bd, want_d)
+
+
 def test_binary_descriptors_use_hamming():
     b1 = RNG.integers(0, 256, (40, 32), dtype=np.uint8)
     b2 = b1[::-1].copy()
