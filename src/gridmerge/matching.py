@@ -83,9 +83,8 @@ def knn(
         return dists, idxs
     if binary:
         matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    else:
+    else:  # FLANN: its index is built, from OpenCV's seeded generator, by knnMatch
         matcher = cv2.FlannBasedMatcher({"algorithm": _FLANN_INDEX_KDTREE, "trees": int(trees)}, {"checks": int(checks)})
-    if method == "flann" and not binary:
         cv2.setRNGSeed(int(seed))
     for row in matcher.knnMatch(d1, d2, k=kk):
         for c, m in enumerate(row):
