@@ -1,6 +1,17 @@
+import os
 from pathlib import Path
 
 import pytest
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config):
+    # Run on pytest-xdist's workers (``-n auto``, the README's test command), pytest-benchmark
+    # turns itself off and warns; the tests hold no benchmarks (``benchmarks/`` does, and
+    # runs in one process): off without the warning.
+    xdist = config.getoption("dist", "no") != "no" or os.environ.get("PYTEST_XDIST_WORKER")
+    if xdist and hasattr(config.option, "benchmark_disable"):
+        config.option.benchmark_disable = True
 
 
 @pytest.fixture

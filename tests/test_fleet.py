@@ -12,6 +12,10 @@ from gridmerge.bench.fleet import Fleet, earlier_version, placement_errors, simu
 from gridmerge.errors import GridMergeError
 
 
+# The fleets merged once per module: its tests run in one worker (pytest-xdist, --dist loadgroup).
+pytestmark = pytest.mark.xdist_group("fleet")
+
+
 @pytest.fixture(scope="module")
 def fleet():
     return simulate_fleet(8, seed=0)

@@ -23,6 +23,9 @@ ROBOTS = [f"robot{k}" for k in range(1, 9)]
 #: Three robots of the sample fleet whose maps all overlap one another.
 TRIO = ["robot1", "robot6", "robot8"]
 
+# The fleets merged once per module: its tests run in one worker (pytest-xdist, --dist loadgroup).
+pytestmark = pytest.mark.xdist_group("fleet-cli")
+
 
 @pytest.fixture(scope="module")
 def fleet_dir(tmp_path_factory):
