@@ -1499,11 +1499,14 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
             may replace the first search's pose."""
             second = judge.decide(poses, weighed=True, rivals=earlier)
             ratio2, confidence2 = _judged(second[0], second[3], second[4])
-            # Its walls as polished, whatever the polish gains on the scorer's sample:
-            # simulated pair 55 of seed 5 (noisy, b's cells 1.4 times a's) was refined to
-            # 3 px off, where its walls agreed on 73 %; polished, 0.2 px off and 87 %.
-            wall2 = max(_full_wall(second[4]), judge.polished_wall(second[1]))
-            shared2 = second[4].overlap_fraction
+            wall2, shared2 = _full_wall(second[4]), second[4].overlap_fraction
+            if wall2 < _SETTLED_WALL and confidence2 > confidence:
+                # Its walls as polished, whatever the polish gains on the scorer's sample
+                # (sought only where they may decide: below both wall bars' higher, for a
+                # winner that could be taken): simulated pair 55 of seed 5 (noisy, b's
+                # cells 1.4 times a's) was refined to 3 px off, where its walls agreed on
+                # 73 %; polished, 0.2 px off and 87 %.
+                wall2 = max(wall2, judge.polished_wall(second[1]))
             # Its winner must also beat every clearly different pose by a fifth (its
             # ambiguity term at its full value): an apartment's room laid onto an office's
             # room agreed on 77 % of the walls of a 24 % overlap, beating rivals by 17 %.
