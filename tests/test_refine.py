@@ -7,7 +7,7 @@ import pytest
 
 from gridmerge import OccupancyGrid, samples
 from gridmerge import refine as refine_mod
-from gridmerge.refine import WallICP, _a_field, _blurred_free, _facing, _plane_step, _same_face, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
+from gridmerge.refine import WallICP, _a_field, _corner_shift, _blurred_free, _facing, _plane_step, _same_face, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
 from gridmerge.transforms import SimilarityTransform, corner_error
 
 
@@ -192,6 +192,49 @@ def test_a_map_twice_as_fine_is_refined(scale):
     refined, report = refine_direct(a, b, start)
     assert report.accepted and report.iterations > 0
     assert corner_error(refined, truth, b.shape) < 1.5
+
+
+def _heterogeneous_pair(scale: float):
+    """Noiseless robot maps of one building from the benchmark's simulator (exact truth):
+    b's cells ``scale`` times a's."""
+    from gridmerge.bench import datasets
+
+    world = samples.building(5, (360, 480))
+    rng = np.random.default_rng(0)
+    free = np.argwhere(world.free())
+    views = free[rng.choice(len(free), 6)][:, ::-1].astype(float)
+    a, b, truth, _ = datasets.robot_views_pair(world, views[:4], views[2:], rotation_deg=30.0, scale=scale, noise=0.0, rng=1)
+    return a, b, SimilarityTransform(truth)
+
+
+def test_the_finer_map_is_the_field_the_other_is_fitted_to():
+    """The coarse map's field steps at the front of its wall cells, half a coarse cell
+    ahead of where they are: the fine map's cells fitted to it shrink or grow the pose's
+    scale. With the coarse map (b, cells twice a's) as the field, a start 11 px off and
+    the truth itself both end 1.7 % off in scale, 5 px at b's corners; with
+    ``reference="finer"`` the last level fits b's cells to a's field instead."""
+    a, b, truth = _heterogeneous_pair(2.0)
+    inv = truth.inverse  # a's pixels -> b's: b, the coarse map, is the field
+    rough = SimilarityTransform(rotation=inv.rotation + 0.01, scale=inv.scale * 1.004, translation=inv.translation + [4.0, -3.0])
+    assert corner_error(rough.inverse, truth, b.shape) > 10.0
+    for start in (inv, rough):
+        coarse, report = refine_direct(b, a, start)
+        assert report.accepted and abs(coarse.inverse.scale / truth.scale - 1) > 0.01
+        assert corner_error(coarse.inverse, truth, b.shape) > 3.0
+        finer, report = refine_direct(b, a, start, reference="finer")
+        assert report.accepted and report.shift_px == pytest.approx(_corner_shift(start.params, finer.params, a.shape))
+        assert abs(finer.inverse.scale / truth.scale - 1) < 0.006
+        assert corner_error(finer.inverse, truth, b.shape) < 1.5
+    # Fields prepared ahead for the finer reference are the ones it uses.
+    cache = prepare_fields(b, a, {}, scale=1 / truth.scale, reference="finer")
+    cached, _ = refine_direct(b, a, rough, reference="finer", cache=cache)
+    np.testing.assert_array_equal(cached.params, finer.params)
+    # a the finer map already: the usual refinement.
+    direct, _ = refine_direct(a, b, truth)
+    same, _ = refine_direct(a, b, truth, reference="finer")
+    np.testing.assert_array_equal(same.params, direct.params)
+    with pytest.raises(ValueError, match="reference"):
+        refine_direct(a, b, truth, reference="b")
 
 
 def test_block_fields_equal_the_dense_fields():

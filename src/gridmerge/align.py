@@ -600,7 +600,7 @@ def _estimate_ransac(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         return Estimate(None, inl, src, dst, "no consistent transform among the matches")
     details: dict = {}
     if opts.refine and inl.sum() >= 2:
-        refined, report = refine_direct(a, b, model)
+        refined, report = refine_direct(a, b, model, reference="finer")
         details["refine"] = {
             "accepted": report.accepted,
             "iterations": report.iterations,
@@ -671,7 +671,7 @@ def _estimate_sift(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
         fields: dict = {}
         for k in range(min(_REFINE_TOP, len(scored))):
             _, model, inl, _, support = scored[k]
-            refined, report = refine_direct(a, b, model, cache=fields)
+            refined, report = refine_direct(a, b, model, cache=fields, reference="finer")
             if report.accepted:
                 scored[k] = score(refined, refined.residuals(src, dst) < opts.residual_threshold, support)
     scored.sort(key=lambda t: -t[0])
@@ -879,7 +879,7 @@ class _Judge:
         def fields() -> dict:
             cache: dict = {}
             if self.opts.refine:
-                prepare_fields(self.a, self.b, cache, scale=self.b.resolution / self.a.resolution)
+                prepare_fields(self.a, self.b, cache, scale=self.b.resolution / self.a.resolution, reference="finer")
             return cache
 
         def scorer() -> WallScorer:
@@ -934,7 +934,7 @@ class _Judge:
         k = (self._key(t), max_shift)
         if k not in self._refinements:
             refined, report = refine_direct(self.a, self.b, t, cache=self.fields, max_shift=max_shift,
-                                            scale_prior=scale_prior(self.a, self.b, t, self.opts))
+                                            scale_prior=scale_prior(self.a, self.b, t, self.opts), reference="finer")
             self._refinements[k] = refined if report.accepted else t
         return self._refinements[k]
 

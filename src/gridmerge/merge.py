@@ -493,7 +493,7 @@ def reverify(
         t = SimilarityTransform.from_estimate(cb.corners(), t(cb.corners())) or SimilarityTransform(t.params)
     shift = 0.0
     if opts.refine:
-        refined, report = refine_direct(ca, cb, t, max_shift=max_shift, scale_prior=scale_prior(ca, cb, t, opts))
+        refined, report = refine_direct(ca, cb, t, max_shift=max_shift, scale_prior=scale_prior(ca, cb, t, opts), reference="finer")
         if report.accepted:
             t, shift = refined, float(report.shift_px)
     v = verify(ca, cb, t, tolerance=opts.wall_tolerance)
