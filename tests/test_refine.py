@@ -174,37 +174,30 @@ def test_a_refinement_held_back_by_max_shift_is_refused(robots):
     assert report.accepted and corner_error(out, truth, b.shape) < 0.5
 
 
+def _heterogeneous_pair(scale: float, noise: float = 0.0):
+    """Robot maps of one building from the benchmark's simulator (exact truth): b's cells
+    ``scale`` times a's, with ``noise`` (spurious and missed hits)."""
+    from gridmerge.bench import datasets
+
+    world = samples.building(5, (360, 480))
+    rng = np.random.default_rng(0)
+    free = np.argwhere(world.free())
+    views = free[rng.choice(len(free), 6)][:, ::-1].astype(float)
+    a, b, truth, _ = datasets.robot_views_pair(world, views[:4], views[2:], rotation_deg=30.0, scale=scale, noise=noise, rng=1)
+    return a, b, SimilarityTransform(truth)
+
+
 @pytest.mark.parametrize("scale", [0.5, 0.55])
 def test_a_map_twice_as_fine_is_refined(scale):
     """b's cells half a's: at a's coarse smoothing, b's thin walls blur over many of b's
     cells and change by less than 0.01 per cell; that level once found no structure and
     ended the whole refinement."""
-    from gridmerge.bench import datasets
-
-    world = samples.building(5, (360, 480))
-    rng = np.random.default_rng(0)
-    free = np.argwhere(world.free())
-    views = free[rng.choice(len(free), 6)][:, ::-1].astype(float)
-    a, b, truth, _ = datasets.robot_views_pair(world, views[:4], views[2:], rotation_deg=30.0, scale=scale, noise=0.12, rng=1)
-    truth = SimilarityTransform(truth)
+    a, b, truth = _heterogeneous_pair(scale, noise=0.12)
     start = SimilarityTransform(rotation=truth.rotation + 0.01, scale=truth.scale, translation=truth.translation + [3.0, -2.0])
     assert corner_error(start, truth, b.shape) > 3.0
     refined, report = refine_direct(a, b, start)
     assert report.accepted and report.iterations > 0
     assert corner_error(refined, truth, b.shape) < 1.5
-
-
-def _heterogeneous_pair(scale: float):
-    """Noiseless robot maps of one building from the benchmark's simulator (exact truth):
-    b's cells ``scale`` times a's."""
-    from gridmerge.bench import datasets
-
-    world = samples.building(5, (360, 480))
-    rng = np.random.default_rng(0)
-    free = np.argwhere(world.free())
-    views = free[rng.choice(len(free), 6)][:, ::-1].astype(float)
-    a, b, truth, _ = datasets.robot_views_pair(world, views[:4], views[2:], rotation_deg=30.0, scale=scale, noise=0.0, rng=1)
-    return a, b, SimilarityTransform(truth)
 
 
 def test_the_finer_map_is_the_field_the_other_is_fitted_to():

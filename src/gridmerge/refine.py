@@ -387,16 +387,28 @@ def _robust_cost(r: np.ndarray, keep: np.ndarray, huber: float, params: np.ndarr
     return total
 
 
+#: Where :func:`refine_direct`'s cache keeps b's fields for ``reference="finer"``.
+_FINER_CACHE = ("finer reference",)
+
+
+def _b_is_the_field(a: OccupancyGrid, b: OccupancyGrid, reference: str) -> bool:
+    """Whether ``reference`` (``"a"`` or ``"finer"``) makes b's field the last level's:
+    b's cells smaller than a's, with ``"finer"``."""
+    if reference not in ("a", "finer"):
+        raise ValueError(f"unknown reference {reference!r} (use 'a' or 'finer')")
+    return reference == "finer" and b.resolution < a.resolution * (1.0 - 1e-9)
+
+
 def prepare_fields(a: OccupancyGrid, b: OccupancyGrid, cache: dict, *, scale: float = 1.0, sigmas=(3.0, 1.5, 1.0),
                    reference: str = "a") -> dict:
     """Fill ``cache`` with the fields :func:`refine_direct` will need (with the same
     ``cache``, ``sigmas`` and ``reference``) for transforms of about ``scale``, so that
     they can be computed ahead, e.g. in a thread while candidates are being found.
     Returns ``cache``."""
-    if reference == "finer" and b.resolution < a.resolution * (1.0 - 1e-9):
+    if _b_is_the_field(a, b, reference):
         # The levels but the last as usual, the last with b's field (_refine_finer_last).
         prepare_fields(a, b, cache, scale=scale, sigmas=tuple(sigmas)[:-1])
-        prepare_fields(b, a, cache.setdefault(("finer reference",), {}), scale=1.0 / scale, sigmas=tuple(sigmas)[-1:])
+        prepare_fields(b, a, cache.setdefault(_FINER_CACHE, {}), scale=1.0 / scale, sigmas=tuple(sigmas)[-1:])
         return cache
     if max(*a.shape, *b.shape) >= _REMAP_MAX:
         return cache
@@ -481,9 +493,7 @@ def refine_direct(
     report : RefineReport
         ``rms_before`` and ``rms_after`` are measured at the last level.
     """
-    if reference not in ("a", "finer"):
-        raise ValueError(f"unknown reference {reference!r} (use 'a' or 'finer')")
-    if reference == "finer" and b.resolution < a.resolution * (1.0 - 1e-9):
+    if _b_is_the_field(a, b, reference):
         return _refine_finer_last(a, b, initial, sigmas=tuple(float(s) for s in sigmas), iterations=iterations,
                                   max_points=max_points, max_shift=max_shift, cache=cache, factors=factors,
                                   scale_prior=scale_prior)
@@ -651,7 +661,7 @@ def _refine_finer_last(a, b, initial, *, sigmas, iterations, max_points, max_shi
         first, r1 = refine_direct(a, b, initial, sigmas=sigmas[:-1], iterations=iterations, max_points=max_points,
                                   max_shift=max_shift, cache=cache, scale_prior=scale_prior,
                                   factors=None if factors is None else tuple(factors)[:-1])
-    inner = None if cache is None else cache.setdefault(("finer reference",), {})
+    inner = None if cache is None else cache.setdefault(_FINER_CACHE, {})
     swapped, r2 = refine_direct(b, a, SimilarityTransform(first.params).inverse, sigmas=sigmas[-1:], iterations=iterations,
                                 max_points=max_points, max_shift=max_shift * px, cache=inner,
                                 factors=None if factors is None else tuple(factors)[-1:],
