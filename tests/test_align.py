@@ -202,7 +202,7 @@ def _ecc_pose(a: OccupancyGrid, b: OccupancyGrid, start: np.ndarray) -> np.ndarr
         return cv2.GaussianBlur(np.where(np.isnan(g.data), 0.5, g.data).astype(np.float32), (0, 0), sigma)
 
     px = b.resolution / a.resolution  # a's cells per b cell
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 200, 1e-7)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-6)
     warp = np.asarray(start, np.float32)[:2].copy()
     _, warp = cv2.findTransformECC(grey(b, max(0.5, 1.0 / px)), grey(a, max(0.5, px / 2.0)), warp, cv2.MOTION_AFFINE,
                                    criteria, a.known.astype(np.uint8), 1)
