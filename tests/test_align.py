@@ -8,6 +8,7 @@ import pytest
 
 import gridmerge
 from gridmerge import AlignResult, OccupancyGrid, align, samples
+from gridmerge.bench.metrics import ecc_reference
 from gridmerge.transforms import ScaledRotationTransform, SimilarityTransform, corner_error
 from gridmerge.features import Features
 
@@ -192,23 +193,6 @@ def test_real_apartment_maps_all_sensor_pairs_merge_and_none_wrongly(shared_data
         assert err <= max(20.0, 2 * pair["fit_median_residual_px"]), (pair["a"], pair["b"], err)
 
 
-def _ecc_pose(a: OccupancyGrid, b: OccupancyGrid, start: np.ndarray) -> np.ndarray:
-    """b's pixels -> a's by OpenCV's ECC (affine) on the maps drawn as grey images
-    (unknown 0.5, each blurred by about a's cell): a fit of every cell's value, made
-    without keypoints, walls or the refinement, from ``start``."""
-    import cv2
-
-    def grey(g, sigma):
-        return cv2.GaussianBlur(np.where(np.isnan(g.data), 0.5, g.data).astype(np.float32), (0, 0), sigma)
-
-    px = b.resolution / a.resolution  # a's cells per b cell
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-6)
-    warp = np.asarray(start, np.float32)[:2].copy()
-    _, warp = cv2.findTransformECC(grey(b, max(0.5, 1.0 / px)), grey(a, max(0.5, px / 2.0)), warp, cv2.MOTION_AFFINE,
-                                   criteria, a.known.astype(np.uint8), 1)
-    return np.vstack([warp, [0.0, 0.0, 1.0]]).astype(float)
-
-
 @pytest.mark.shared
 @pytest.mark.parametrize("swap", [False, True])
 def test_real_maps_of_two_resolutions_are_merged_to_scale(shared_data, swap):
@@ -224,7 +208,7 @@ def test_real_maps_of_two_resolutions_are_merged_to_scale(shared_data, swap):
     assert r.success and r.confidence >= 0.9, r.message
     metric_scale = math.hypot(*r.metric_transform.params[:2, 0])
     assert abs(metric_scale - 1.0) < 1e-3
-    ecc = _ecc_pose(a, b, r.transform.params)
+    ecc = ecc_reference(a, b, r.transform)
     assert abs(math.hypot(*ecc[:2, 0]) * a.resolution / b.resolution - 1.0) < 5e-4  # ECC's scale: the ratio's
     assert corner_error(r.transform, ecc, b.shape) < 1.0
 

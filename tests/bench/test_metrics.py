@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from gridmerge import OccupancyGrid
+from gridmerge import OccupancyGrid, samples
 from gridmerge.align import AlignResult
 from gridmerge.bench.datasets import Case
-from gridmerge.bench.metrics import PRECISE_PX, SUCCESS_PX, Record, evaluate, judge, summarize
-from gridmerge.transforms import SimilarityTransform
+from gridmerge.bench.metrics import PRECISE_PX, SUCCESS_PX, Record, ecc_reference, evaluate, judge, summarize
+from gridmerge.transforms import SimilarityTransform, corner_error
 
 SHAPE = (200, 300)
 TRUTH = np.array(
@@ -207,3 +207,17 @@ def test_compare_cases_lists_changed_outcomes_and_moved_errors():
     assert [report.outcome(r) for r in after[1:5]] == ["wrong", "right", "right", "false merge"]
     same = report.compare_cases(before, before)
     assert "outcome changed: 0; outcome kept, error moved by more than 1 px: 0." in same and "###" not in same
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.5, 0.7])
+def test_the_ecc_reference_finds_a_known_pose_from_a_start_off(scale):
+    """The reference for real pairs without annotated truth, on robot maps whose truth is
+    known: from a start 7 px off, within 1 px of it (0.3-0.7 px)."""
+    a, b, truth = samples.robot_pair(0, scale=scale)
+    t = SimilarityTransform(truth)
+    start = SimilarityTransform(rotation=t.rotation + 0.01, scale=t.scale * 1.003, translation=t.translation + [2.5, -2.0])
+    assert corner_error(start, t, b.shape) > 6.0
+    ref = ecc_reference(a, b, start)
+    assert ref.shape == (3, 3) and corner_error(ref, t, b.shape) < 1.0
+    # A 2 x 3 start is taken as well.
+    np.testing.assert_allclose(ecc_reference(a, b, start.params[:2]), ref)

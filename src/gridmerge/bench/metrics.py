@@ -47,6 +47,7 @@ __all__ = [
     "Record",
     "judge",
     "halmstad_point_error",
+    "ecc_reference",
     "evaluate",
     "summarize",
     "shared_walls_group",
@@ -195,6 +196,41 @@ def halmstad_point_error(transform, points_a, points_b) -> float:
     pa = np.asarray(points_a, dtype=float)
     mapped = pb @ m[:2, :2].T + m[:2, 2]
     return float(np.median(np.hypot(*(mapped - pa).T)))
+
+
+def ecc_reference(a, b, start, *, iterations: int = 60) -> np.ndarray:
+    """A reference pose for a real pair without annotated truth: b's pixels -> a's, the
+    affine transform OpenCV's ECC fits to every cell's grey value, from ``start``.
+
+    Both maps are drawn as grey images (free 0, occupied 1, unknown 0.5), each blurred
+    by about a's cell (at least half its own), and ECC (``cv2.findTransformECC``,
+    ``MOTION_AFFINE``, a's known cells as the mask) maximises their correlation. It uses
+    no keypoints, walls or refinement of ours, but it is a fit, not a truth: it needs a
+    ``start`` within a few pixels, and its own optimum is only as good as the maps agree.
+
+    Parameters
+    ----------
+    a, b : OccupancyGrid
+    start : (3, 3) float array or transform
+        b's pixels -> a's pixels, near the answer.
+    iterations : int
+        ECC iterations at most (it also stops when the warp changes by less than 1e-6).
+
+    Returns
+    -------
+    (3, 3) float array
+    """
+    import cv2
+
+    def grey(g, sigma):
+        return cv2.GaussianBlur(np.where(np.isnan(g.data), 0.5, g.data).astype(np.float32), (0, 0), sigma)
+
+    px = b.resolution / a.resolution  # a's cells per b cell
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, int(iterations), 1e-6)
+    warp = np.asarray(_params(start), np.float32)[:2].copy()
+    _, warp = cv2.findTransformECC(grey(b, max(0.5, 1.0 / px)), grey(a, max(0.5, px / 2.0)), warp, cv2.MOTION_AFFINE,
+                                   criteria, a.known.astype(np.uint8), 1)
+    return np.vstack([warp, [0.0, 0.0, 1.0]]).astype(float)
 
 
 def judge(
