@@ -41,16 +41,16 @@ def main(argv=None) -> int:
     coarse = gridmerge.load_map(maps / "willow-full.yaml")
     rows = {m: [] for m in METHODS}
     for a, b in ((fine, coarse), (coarse, fine)):
-        reference = ecc_reference(a, b, gridmerge.align(a, b).transform)
+        results = {m: gridmerge.align(a, b, method=m) for m in METHODS}
+        reference = ecc_reference(a, b, results["hybrid"].transform)
         ratio = math.hypot(*reference[:2, 0]) * a.resolution / b.resolution
         print(f"a at {a.resolution} m: the reference's scale is the resolutions' ratio x {ratio:.5f}", file=sys.stderr)
-        for m in METHODS:
-            r = gridmerge.align(a, b, method=m)
+        for m, r in results.items():
             if r.transform is None:
                 rows[m].append(("declined", ""))
                 continue
             err = corner_error(r.transform, reference, b.shape)
-            rows[m].append((f"{err:.2f} px", f"{math.hypot(*r.metric_transform.params[:2, 0]):.5f}"))
+            rows[m].append((f"{err:.2f} px", f"{r.metric_transform.scale:.5f}"))
     print("| method | fine first | coarse first | metric scale (fine first) | metric scale (coarse first) |")
     print("| --- | --- | --- | --- | --- |")
     for m, ((e1, s1), (e2, s2)) in rows.items():
