@@ -850,7 +850,7 @@ class _Judge:
         self._icp: WallICP | None = None
         self._polished: dict = memory.polished
         self._same: dict = {}  # pose -> the refined candidates it beat that are the same merge
-        self._rivals: dict = {}  # pose -> (its score function, [(score, pose) of its rivals]) (decide)
+        self._rivals: dict = {}  # pose -> (weighed, [(score, pose) of its rivals]) (decide)
 
     def release(self) -> None:
         """Let go of the scorer, the refinement's fields and the polish's tables (the
@@ -1171,7 +1171,7 @@ class _Judge:
         others += [(w, t) for w, t, _, apart in beaten if apart]
         others += [(score(t), t) for t in rivals if self.rival(best, t)]
         others += [(score(t), t) for t in self.ring(best)]
-        self._rivals[self._key(best)] = (score, others)
+        self._rivals[self._key(best)] = (weighed, others)  # (not the bound method: no cycle)
         runner_up = max((w for w, _ in others), default=0.0)
         return value, best, kind, runner_up, verification.result()
 
@@ -1191,7 +1191,8 @@ class _Judge:
         sharing more can come near the right one's score with its walls agreeing far
         less (simulated pair 2 of seed 4: 0.528 against 0.538, its walls agreeing on 53 %
         against 77 %)."""
-        score, others = self._rivals[self._key(best)]
+        weighed, others = self._rivals[self._key(best)]
+        score = self.weighed if weighed else self.quick
         measured: list[tuple[float, AffineTransform]] = []
 
         def measure(t: AffineTransform) -> None:
