@@ -1198,8 +1198,8 @@ class _Judge:
         def measure(t: AffineTransform) -> None:
             full = _full_wall(self._verify(t))
             p = self._polish(t) if self.opts.refine else None
-            if p is not None and _full_wall(self._verify(p)) > full:
-                t, full = p, _full_wall(self._verify(p))
+            if p is not None and (polished := _full_wall(self._verify(p))) > full:
+                t, full = p, polished
             measured.append((full * self._score(t)[3], t))
 
         measure(best)
@@ -1556,16 +1556,8 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
                 # cells 1.4 times a's) was refined to 3 px off, where its walls agreed on
                 # 73 %; polished, 0.2 px off and 87 %.
                 wall2 = max(wall2, judge.polished_wall(second[1]))
-            # Its winner must also beat every clearly different pose by a fifth (its
-            # ambiguity term at its full value): an apartment's room laid onto an office's
-            # room agreed on 77 % of the walls of a 24 % overlap, beating rivals by 17 %.
-            settled = wall2 >= _SETTLED_WALL and shared2 >= _WALL_LED_MIN_SHARED and ratio2 <= _WALL_LED_RATIO
-            # Noisy maps miss walls (at the truth of the simulated hard tier, 12 % missed
-            # and spurious hits, walls agree on 48-75 %): a pose twice as good as any
-            # other needs less.
-            clear = ratio2 <= _CLEAR_RATIO and wall2 >= _CLEAR_WALL and shared2 >= _CLEAR_SHARED
-            walls_pass = (wall2 >= _SETTLED_WALL and shared2 >= _WALL_LED_MIN_SHARED) or (wall2 >= _CLEAR_WALL and shared2 >= _CLEAR_SHARED)
-            if walls_pass and not (settled or clear) and second[0] > 0:
+            passes = _wall_led_passes(wall2, shared2, ratio2)
+            if not passes and _wall_led_passes(wall2, shared2, 0.0) and second[0] > 0:
                 # Only its rivals stop it: the winner and its rivals measured again in full
                 # (:meth:`_Judge.in_full`). The sample can rank a pose sharing more of the
                 # maps near the right one, or above it, with its walls agreeing far less
@@ -1573,16 +1565,13 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
                 value3, top3, runner3 = judge.in_full(second[1], _CLEAR_RATIO)
                 v3 = judge._verify(top3)
                 ratio3 = runner3 / value3 if value3 > 0 else 1.0
-                wall3 = max(_full_wall(v3), judge.polished_wall(top3))
-                shared3 = v3.overlap_fraction
-                settled = wall3 >= _SETTLED_WALL and shared3 >= _WALL_LED_MIN_SHARED and ratio3 <= _WALL_LED_RATIO
-                clear = ratio3 <= _CLEAR_RATIO and wall3 >= _CLEAR_WALL and shared3 >= _CLEAR_SHARED
-                if settled or clear:
+                passes = _wall_led_passes(max(_full_wall(v3), judge.polished_wall(top3)), v3.overlap_fraction, ratio3)
+                if passes:
                     kind3 = second[2] if top3 is second[1] else "walls (wall-led, measured in full)"
                     second = (value3, top3, kind3, runner3, v3)
                     ratio2, confidence2 = _judged(value3, runner3, v3)
                     in_full.add(judge._key(top3))
-            return second, ratio2, confidence2, confidence2 > confidence and (settled or clear)
+            return second, ratio2, confidence2, confidence2 > confidence and passes
 
         def led_search(poses):
             """:func:`judged_led` of ``poses``, and of those and the winner turned when
@@ -1653,6 +1642,24 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         details["confirmed_by"] = _confirmed_by(matched[0])
         return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched[2], matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+
+
+def _wall_led_passes(wall: float, shared: float, ratio: float) -> bool:
+    """Whether a wall-led winner whose walls agree on ``wall`` (full verification) over
+    ``shared`` of the smaller map, its clearly different rivals scoring ``ratio`` of its
+    score, may be taken (its confidence aside); with ``ratio`` 0, whether its walls alone
+    would let it.
+
+    Settled: walls agreeing on :data:`_SETTLED_WALL` over :data:`_WALL_LED_MIN_SHARED`,
+    and every clearly different pose beaten by a fifth (:data:`_WALL_LED_RATIO`, the
+    ambiguity term at its full value): an apartment's room laid onto an office's room
+    agreed on 77 % of the walls of a 24 % overlap, beating rivals by 17 %. Or clear:
+    noisy maps miss walls (at the truth of the simulated hard tier, 12 % missed and
+    spurious hits, walls agree on 48-75 %), and a pose twice as good as any other
+    (:data:`_CLEAR_RATIO`) needs :data:`_CLEAR_WALL` over :data:`_CLEAR_SHARED`."""
+    settled = wall >= _SETTLED_WALL and shared >= _WALL_LED_MIN_SHARED and ratio <= _WALL_LED_RATIO
+    clear = ratio <= _CLEAR_RATIO and wall >= _CLEAR_WALL and shared >= _CLEAR_SHARED
+    return settled or clear
 
 
 def _best_peaks(pool: list, peaks: int, n: int) -> list:
