@@ -36,7 +36,7 @@ import numpy as np
 from .grid import FREE_THRESHOLD, OCCUPIED_THRESHOLD, OccupancyGrid
 from .transforms import AffineTransform
 
-__all__ = ["Verification", "verify", "acceptance_index", "WallScorer", "QuickScore", "despeckle"]
+__all__ = ["Verification", "verify", "acceptance_index", "WallScorer", "QuickScore", "despeckle", "chance_wall_agreement"]
 
 
 @dataclass(frozen=True)
@@ -123,6 +123,41 @@ def _near(mask: np.ndarray, tolerance: float) -> np.ndarray:
         return np.zeros_like(mask)
     dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3)
     return dist <= tolerance
+
+
+def chance_wall_agreement(grid: OccupancyGrid, tolerance: float = 2.0) -> float:
+    """The share of ``grid``'s known cells within ``tolerance`` cells of one of its
+    occupied cells (0 when it knows none).
+
+    About what the other map's walls would agree with on this map's side (the wall
+    agreement's share for this map) for a pose laid anywhere on it: real maps' walls are
+    thin lines through free space (0.1 to 0.45 at 3 cells), noise or a map whose free
+    and occupied values are swapped is walls everywhere (near 1), and there the wall
+    agreement cannot tell a right pose from any other.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gridmerge.grid import OccupancyGrid
+    >>> room = np.zeros((100, 100)); room[[0, -1], :] = 1.0; room[:, [0, -1]] = 1.0
+    >>> round(chance_wall_agreement(OccupancyGrid(room), 3.0), 2)
+    0.15
+    >>> noise = np.random.default_rng(0).integers(0, 2, (100, 100)).astype(float)
+    >>> round(chance_wall_agreement(OccupancyGrid(noise), 3.0), 2)
+    1.0
+    """
+    known = grid.known
+    n = int(np.count_nonzero(known))
+    walls = grid.occupied()
+    if n == 0 or not walls.any():
+        return 0.0
+    # A disc of radius ``tolerance`` (exact Euclidean): a dilation costs a few
+    # milliseconds where a distance transform of a large map costs tens.
+    r = int(math.floor(tolerance))
+    y, x = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = (x * x + y * y <= tolerance * tolerance).astype(np.uint8)
+    near = cv2.dilate(walls.view(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return float(np.count_nonzero(near.view(bool) & known)) / n
 
 
 def _footprint(params: np.ndarray, shape_b, shape_a) -> tuple[int, int, int, int]:
