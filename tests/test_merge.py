@@ -79,6 +79,24 @@ def test_unplaced_maps_are_reported_and_the_rest_merged(pair):
     assert d["unplaced"] == ["elsewhere"] and [e["placed"] for e in d["maps"]] == [True, True, False]
 
 
+def test_a_map_of_walls_everywhere_is_named_and_the_rest_merged(pair):
+    """A map read with its free and occupied values swapped is declined by every pair
+    at once: reported unplaced with a warning naming it; as the reference, the message
+    says the others align and which to choose instead of "no two maps"."""
+    a, b, _ = pair
+    known = ~np.isnan(a.data)
+    swapped = a.replace(data=np.where(known, 1.0 - a.data, np.nan), name="swapped")
+    m = merge([a, swapped, b])
+    assert m.success and m.unplaced == ["swapped"]
+    assert [w for w in m.warnings if "walls everywhere" in w] == [m.warnings[-1]]
+    assert m.warnings[-1].startswith("swapped is walls everywhere") and "negate" in m.warnings[-1]
+    m = merge([swapped, a, b])
+    assert not m.success and m.grid is None
+    assert m.message.startswith("the reference swapped could not be aligned with any other map")
+    assert m.message.endswith(f"{a.name}, {b.name} align with each other: make one of them the reference"), m.message
+    assert "no two maps" not in m.message
+
+
 def test_no_merge_when_nothing_aligns():
     a, b = samples.negative_pair(1)
     m = merge([a, b])

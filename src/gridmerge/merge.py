@@ -1110,12 +1110,19 @@ class Merger:
                 tried = [p.result for p in pairs if k in (p.i, p.j)]
                 alignments[k] = max(tried, key=lambda r: r.confidence, default=None)
         confidences = [(_chain_confidence(report, k) if poses[k] is not None else None) for k in range(n)]
+        warnings = warnings + _walls_everywhere(names, pairs)
         base = dict(names=names, alignments=alignments, parents=list(report.parents), unplaced=unplaced, fusion=self.fusion,
                     inputs=maps, confidences=confidences, pairs=pairs, warnings=warnings, reference=reference, stats=stats, graph=report)
         if len(placed) < 2:
             others = [p.result for p in pairs if reference in (p.i, p.j)] or [p.result for p in pairs]
             best = max(others, key=lambda r: r.confidence, default=None)
             reason = best.message if best is not None else "no alignment"
+            others = sorted({x for p in pairs if p.result.success for x in (p.i, p.j)})
+            if others:
+                # Others align with each other: only the reference is alone.
+                message = (f"the reference {names[reference]} could not be aligned with any other map ({reason}); "
+                           f"{', '.join(names[k] for k in others)} align with each other: make one of them the reference")
+                return MergeResult(False, None, transforms=[None] * n, message=message, **base)
             return MergeResult(False, None, transforms=[None] * n, message=f"no two maps could be aligned ({reason})", **base)
         t1 = time.perf_counter()
         ref = maps[reference]
@@ -1145,6 +1152,23 @@ class Merger:
         stats.fuse_s = time.perf_counter() - t1
         msg = f"merged {len(placed)} of {n} maps" + (f"; unplaced: {', '.join(unplaced)}" if unplaced else "")
         return MergeResult(True, grid, transforms=transforms, message=msg, **base)
+
+
+def _walls_everywhere(names: list[str], pairs) -> list[str]:
+    """A warning for each map that every alignment tried with it declined as walls
+    everywhere (:func:`gridmerge.align.align`: noise, or free and occupied swapped)."""
+    out = []
+    for k, name in enumerate(names):
+        flagged = []
+        for p in pairs:
+            if k not in (p.i, p.j):
+                continue
+            w = p.result.details.get("walls_everywhere")
+            flagged.append(w["share"] if w and w["map"] == ("a" if p.i == k else "b") else None)
+        if flagged and all(f is not None for f in flagged):
+            out.append(f"{name} is walls everywhere ({max(flagged):.0%} of its known cells lie near an occupied one), "
+                       "so it was not aligned: noise, or its free and occupied values swapped (negate, thresholds)?")
+    return out
 
 
 def _chain_confidence(report: GraphReport, k: int) -> float:
