@@ -1903,7 +1903,8 @@ def align(
     if METHODS[method].verified:
         t0 = time.perf_counter()
         for name, g in (("a", a), ("b", b)):
-            share = chance_wall_agreement(g, opts.wall_tolerance)
+            # (A map of fewer cells than an overlap needs is declined for that instead.)
+            share = chance_wall_agreement(g, opts.wall_tolerance) if g.data.size >= opts.min_overlap_cells else 0.0
             if share >= _WALLS_EVERYWHERE:
                 return _walls_everywhere(name, share, method, opts, time.perf_counter() - t0)
     return _align(a, b, method, opts, rng, features, extractor)
