@@ -1117,11 +1117,11 @@ class Merger:
             others = [p.result for p in pairs if reference in (p.i, p.j)] or [p.result for p in pairs]
             best = max(others, key=lambda r: r.confidence, default=None)
             reason = best.message if best is not None else "no alignment"
-            others = sorted({x for p in pairs if p.result.success for x in (p.i, p.j)})
-            if others:
+            aligned = sorted({x for p in pairs if p.result.success for x in (p.i, p.j)})
+            if aligned:
                 # Others align with each other: only the reference is alone.
                 message = (f"the reference {names[reference]} could not be aligned with any other map ({reason}); "
-                           f"{', '.join(names[k] for k in others)} align with each other: make one of them the reference")
+                           f"{', '.join(names[k] for k in aligned)} align with each other: make one of them the reference")
                 return MergeResult(False, None, transforms=[None] * n, message=message, **base)
             return MergeResult(False, None, transforms=[None] * n, message=f"no two maps could be aligned ({reason})", **base)
         t1 = time.perf_counter()
