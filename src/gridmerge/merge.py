@@ -1117,7 +1117,7 @@ class Merger:
             others = [p.result for p in pairs if reference in (p.i, p.j)] or [p.result for p in pairs]
             best = max(others, key=lambda r: r.confidence, default=None)
             reason = best.message if best is not None else "no alignment"
-            aligned = sorted({x for p in pairs if p.result.success for x in (p.i, p.j)})
+            aligned = sorted({x for p in pairs if p.result.success and reference not in (p.i, p.j) for x in (p.i, p.j)})
             if aligned:
                 # Others align with each other: only the reference is alone.
                 message = (f"the reference {names[reference]} could not be aligned with any other map ({reason}); "
