@@ -1910,6 +1910,11 @@ def align(
     return _align(a, b, method, opts, rng, features, extractor)
 
 
+#: What makes a map walls everywhere (the end of the messages that say so).
+_WALLS_EVERYWHERE_CAUSES = ("noise, or its values read wrongly (free and occupied swapped, or unknown read as occupied: "
+                           "negate, thresholds)?")
+
+
 def _walls_everywhere(name: str, share: float, method: str, opts: AlignOptions, elapsed: float) -> AlignResult:
     """The declined result of maps one of which, ``name``, has walls near ``share`` of
     its known cells (:func:`gridmerge.verify.chance_wall_agreement`): the walls that
@@ -1917,7 +1922,7 @@ def _walls_everywhere(name: str, share: float, method: str, opts: AlignOptions, 
     searched (dense noise took half a minute to be declined so)."""
     message = (f"declined: map {name} is walls everywhere ({share:.0%} of its known cells lie within "
                f"{opts.wall_tolerance:g} cells of an occupied one; maps of buildings: under 45 %), so its walls agree with "
-               "any pose: noise, or its free and occupied values swapped (negate, thresholds)?")
+               f"any pose: {_WALLS_EVERYWHERE_CAUSES}")
     return AlignResult(success=False, transform=None, candidate=None, metric_transform=None, confidence=0.0,
                        acceptance_index=math.nan, inliers=0, matches=0, keypoints=(0, 0), method=method, message=message,
                        elapsed_s=elapsed, details={"walls_everywhere": {"map": name, "share": round(share, 4)}})

@@ -42,6 +42,7 @@ import numpy as np
 
 from .align import (
     METHODS,
+    _WALLS_EVERYWHERE_CAUSES,
     AlignOptions,
     AlignResult,
     _coarse_look,
@@ -1156,7 +1157,7 @@ class Merger:
 
 def _walls_everywhere(names: list[str], pairs) -> list[str]:
     """A warning for each map that every alignment tried with it declined as walls
-    everywhere (:func:`gridmerge.align.align`: noise, or free and occupied swapped)."""
+    everywhere (:func:`gridmerge.align.align`: noise, or values read wrongly)."""
     out = []
     for k, name in enumerate(names):
         flagged = []
@@ -1167,7 +1168,7 @@ def _walls_everywhere(names: list[str], pairs) -> list[str]:
             flagged.append(w["share"] if w and w["map"] == ("a" if p.i == k else "b") else None)
         if flagged and all(f is not None for f in flagged):
             out.append(f"{name} is walls everywhere ({max(flagged):.0%} of its known cells lie near an occupied one), "
-                       "so it was not aligned: noise, or its free and occupied values swapped (negate, thresholds)?")
+                       f"so it was not aligned: {_WALLS_EVERYWHERE_CAUSES}")
     return out
 
 
