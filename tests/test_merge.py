@@ -84,8 +84,7 @@ def test_a_map_of_walls_everywhere_is_named_and_the_rest_merged(pair):
     at once: reported unplaced with a warning naming it; as the reference, the message
     says the others align and which to choose instead of "no two maps"."""
     a, b, _ = pair
-    known = ~np.isnan(a.data)
-    swapped = a.replace(data=np.where(known, 1.0 - a.data, np.nan), name="swapped")
+    swapped = a.replace(data=np.where(a.known, 1.0 - a.data, np.nan), name="swapped")
     m = merge([a, swapped, b])
     assert m.success and m.unplaced == ["swapped"]
     assert [w for w in m.warnings if "walls everywhere" in w] == [m.warnings[-1]]

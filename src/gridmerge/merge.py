@@ -1111,7 +1111,7 @@ class Merger:
                 tried = [p.result for p in pairs if k in (p.i, p.j)]
                 alignments[k] = max(tried, key=lambda r: r.confidence, default=None)
         confidences = [(_chain_confidence(report, k) if poses[k] is not None else None) for k in range(n)]
-        warnings = warnings + _walls_everywhere(names, pairs)
+        warnings = warnings + _walls_everywhere_warnings(names, pairs)
         base = dict(names=names, alignments=alignments, parents=list(report.parents), unplaced=unplaced, fusion=self.fusion,
                     inputs=maps, confidences=confidences, pairs=pairs, warnings=warnings, reference=reference, stats=stats, graph=report)
         if len(placed) < 2:
@@ -1155,7 +1155,7 @@ class Merger:
         return MergeResult(True, grid, transforms=transforms, message=msg, **base)
 
 
-def _walls_everywhere(names: list[str], pairs) -> list[str]:
+def _walls_everywhere_warnings(names: list[str], pairs) -> list[str]:
     """A warning for each map that every alignment tried with it declined as walls
     everywhere (:func:`gridmerge.align.align`: noise, or values read wrongly)."""
     out = []
