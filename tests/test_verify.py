@@ -175,3 +175,25 @@ def test_despeckle_keeps_a_valid_read_only_grid():
     out = despeckle(OccupancyGrid(d))
     assert out.data[4, 4] == 0.0 and not out.data.flags.writeable
     assert out.resolution == 0.05 and out == OccupancyGrid(np.zeros((9, 9)))
+
+
+def test_near_is_the_distance_transforms_own_threshold():
+    """``_near`` dilates small tolerances by the offsets the distance transform puts
+    within them; it must mark exactly the cells the transform does, whatever the mask,
+    its edges and the tolerance (including ties such as 0.955 and 1.3693, its weights)."""
+    from gridmerge.verify import _DILATE_MAX, _near
+
+    rng = np.random.default_rng(3)
+    tolerances = [-1.0, 0.0, 0.5, 0.955, 1.0, 1.3693, 2.0, 2.865, 2.9, 3.0, 3.3, 5.0, _DILATE_MAX, 9.5, float("nan")]
+    for k in range(600):
+        h, w = (int(v) for v in rng.integers(1, 50, 2))
+        mask = rng.random((h, w)) < [0.002, 0.02, 0.1, 0.6][k % 4]
+        tol = tolerances[k % len(tolerances)] if k < 450 else float(rng.uniform(0.0, 10.0))
+        dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 3)
+        expected = dist <= tol if mask.any() else np.zeros_like(mask)
+        got = _near(mask, tol)
+        assert got.dtype == bool and got.shape == mask.shape
+        np.testing.assert_array_equal(got, expected, err_msg=f"{h}x{w}, tolerance {tol}")
+    # A strided view is read as the cells it shows.
+    big = rng.random((40, 60)) < 0.05
+    np.testing.assert_array_equal(_near(big[::2, 1::3], 3.0), _near(np.ascontiguousarray(big[::2, 1::3]), 3.0))

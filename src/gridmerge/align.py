@@ -1945,13 +1945,16 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
         memory = _PairMemory()
     ext = extractor or (spec.extractor(opts) if spec.extractor is not None else None)
     fa, fb = features if features is not None else (None, None)
+    cut = None
     if fa is None and fb is None and ext is not None and extractor is None:
         # Both maps' features at once, each with its own extractor (OpenCV releases the
-        # interpreter while it works): a third less wall time on two cores.
-        fa, fb = _extract_both(ext, spec.extractor(opts), a, b)
+        # interpreter while it works): a third less wall time on two cores. The working
+        # maps need no keypoints: they are cut while b's are still being found.
+        fa, fb, cut = _extract_both(ext, spec.extractor(opts), a, b,
+                                    also=lambda: working_maps(a, b, despeckled=spec.verified))
     fa = fa if fa is not None else (ext(a) if ext is not None else Features.empty())
     fb = fb if fb is not None else (ext(b) if ext is not None else Features.empty())
-    ca, oa, cb, ob = working_maps(a, b, despeckled=spec.verified)
+    ca, oa, cb, ob = cut if cut is not None else working_maps(a, b, despeckled=spec.verified)
     remembered = {} if memory is None else {"memory": memory.of(oa, ob, ca, cb)}
     est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen, **remembered)
     if est.transform is not None:
@@ -2215,14 +2218,21 @@ _RIVAL_QUANTILE = 0.1
 _RIVAL_CELLS = 3000
 
 
-def _extract_both(ext_a: FeatureExtractor, ext_b: FeatureExtractor, a: OccupancyGrid, b: OccupancyGrid):
-    """``(ext_a(a), ext_b(b))``, the two in parallel threads when there is a core for each."""
+def _extract_both(ext_a: FeatureExtractor, ext_b: FeatureExtractor, a: OccupancyGrid, b: OccupancyGrid, also=None):
+    """``(ext_a(a), ext_b(b))``, the two in parallel threads when there is a core for each.
+
+    With ``also`` (a function of no arguments), ``(ext_a(a), ext_b(b), also())``: ``also``
+    runs in this thread once a's keypoints are found, while b's may still be sought."""
     if (os.cpu_count() or 1) < 2:
-        return ext_a(a), ext_b(b)
+        found = ext_a(a), ext_b(b)
+        return found if also is None else (*found, also())
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-features") as pool:
         job = pool.submit(ext_b, b)
         fa = ext_a(a)
-        return fa, job.result()
+        if also is None:
+            return fa, job.result()
+        extra = also()
+        return fa, job.result(), extra
 
 
 def _done(value) -> Future:

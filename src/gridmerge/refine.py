@@ -353,10 +353,16 @@ def _b_level(sigma_a: float, factor_a: int, scale: float) -> tuple[float, int]:
     return sigma_b, fb
 
 
+#: Key of ``cache``'s dict of a large map's planes, kept only while :func:`prepare_fields`
+#: makes every level (they are not worth their memory afterwards).
+_PASSING = "passing planes"
+
+
 def _cached_planes(grid: OccupancyGrid, cache, which: str, factor: int):
-    if grid.data.size > LARGE_CELLS:  # not worth their memory: each level needs them once
-        return _planes(grid, _whole(grid), factor)
-    return _cached(cache, (which + " planes", factor), lambda: _planes(grid, _whole(grid), factor))
+    key = (which + " planes", factor)
+    if grid.data.size > LARGE_CELLS:  # each level needs them once, but levels share them
+        return _cached(cache.get(_PASSING) if cache is not None else None, key, lambda: _planes(grid, _whole(grid), factor))
+    return _cached(cache, key, lambda: _planes(grid, _whole(grid), factor))
 
 
 def _level_field(a: OccupancyGrid, cache, sigma: float, factor: int):
@@ -414,13 +420,17 @@ def prepare_fields(a: OccupancyGrid, b: OccupancyGrid, cache: dict, *, scale: fl
         return cache
     sigmas = tuple(float(s) for s in sigmas)
     large = max(a.data.size, b.data.size) > LARGE_CELLS
-    for sigma_a, fa in zip(sigmas, _auto_factors(sigmas, large)):
-        sigma_b, fb = _b_level(sigma_a, fa, scale)
-        if fa == 1 and fb == 1 and large:
-            _level_points(b, cache, sigma_b, 2)
-        else:
-            _level_field(a, cache, sigma_a, fa)
-            _level_points(b, cache, sigma_b, fb)
+    cache[_PASSING] = {}  # a large map's reduced planes, made once for all the levels
+    try:
+        for sigma_a, fa in zip(sigmas, _auto_factors(sigmas, large)):
+            sigma_b, fb = _b_level(sigma_a, fa, scale)
+            if fa == 1 and fb == 1 and large:
+                _level_points(b, cache, sigma_b, 2)
+            else:
+                _level_field(a, cache, sigma_a, fa)
+                _level_points(b, cache, sigma_b, fb)
+    finally:
+        del cache[_PASSING]
     return cache
 
 
