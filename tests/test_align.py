@@ -965,12 +965,20 @@ def test_a_pose_found_from_b_side_is_precise_in_either_order(shared_data):
     # point-to-point ICP it was 8 px off, a's walls agreeing on 26 % (at 2 px), until
     # polished in a's frame (seventeenth session); the search's own polish, pairs that
     # face the same way fitted point to plane, now puts it within 1 px. Either order of
-    # the maps gives the same pose.
+    # the maps gives the same pose. (With OpenCV 5.1's warps, whose bilinear weights
+    # differ from 5.0's in the last bits, the first side's wall-led search finds it
+    # clearly by itself; when it does not, the other side's pose must be the one taken.)
+    from gridmerge.align import AlignOptions
     from gridmerge.bench import datasets
 
     case = datasets.simulated(n=60, seed=2, data_dir=shared_data, see_through=2)[40]
     r = align(case.a, case.b, rng=0)
-    assert r.success and r.details["other_side"]["taken"], r.message
+    assert r.success, r.message
+    other = r.details.get("other_side")
+    if other is None:  # settled from the first side: only a confident pose skips the other
+        assert r.confidence >= AlignOptions().one_sided_confidence
+    else:
+        assert other["taken"]
     assert corner_error(r.transform, case.truth, case.b.shape) < 1.0
     s = align(case.b, case.a, rng=0)
     assert s.confidence == r.confidence

@@ -93,3 +93,35 @@ def test_layers_of_different_shapes_are_refused():
         fuse_values([A, np.zeros((2, 2), np.float32)])
     with pytest.raises(ValueError, match="nothing to fuse"):
         fuse_values(iter([]))
+
+
+def test_quarter_turns_mirrorings_and_shifts_copy_cells_exactly():
+    """Transforms that move the cell grid onto itself are carried cell for cell, with
+    either interpolation, whatever OpenCV's warps do with round-off (5.1's bilinear
+    weights are not exactly 0 and 1 at whole cells)."""
+    from gridmerge.fuse import reindexed
+
+    rng = np.random.default_rng(0)
+    turns = [np.array(m, float) for m in ([[1, 0], [0, 1]], [[-1, 0], [0, 1]], [[1, 0], [0, -1]], [[-1, 0], [0, -1]],
+                                          [[0, 1], [1, 0]], [[0, -1], [1, 0]], [[0, 1], [-1, 0]], [[0, -1], [-1, 0]])]
+    for k in range(400):
+        h, w = (int(v) for v in rng.integers(1, 12, 2))
+        oh, ow = (int(v) for v in rng.integers(1, 12, 2))
+        data = rng.random((h, w)).astype(np.float32)
+        data[rng.random((h, w)) < 0.2] = np.nan
+        a, t = turns[k % 8], rng.integers(-13, 13, 2).astype(float)
+        inverse = np.hstack([a, t[:, None]])  # output pixels -> data's pixels
+        expected = np.full((oh, ow), np.nan, np.float32)
+        for y in range(oh):
+            for x in range(ow):
+                xi, yi = (a @ [x, y] + t).astype(int)
+                if 0 <= xi < w and 0 <= yi < h:
+                    expected[y, x] = data[yi, xi]
+        np.testing.assert_array_equal(reindexed(data, inverse, (oh, ow)), expected)
+        forward = np.vstack([np.hstack([a.T, (-a.T @ t)[:, None]]), [0, 0, 1]])  # data's pixels -> output
+        for interpolation in ("linear", "nearest"):
+            np.testing.assert_array_equal(warp_values(data, forward, (oh, ow), interpolation=interpolation), expected)
+    # Anything else is interpolated as before.
+    assert reindexed(np.zeros((3, 3)), [[1, 0, 0.5], [0, 1, 0]], (3, 3)) is None
+    assert reindexed(np.zeros((3, 3)), [[2, 0, 0], [0, 1, 0]], (3, 3)) is None
+    assert reindexed(np.zeros((3, 3)), [[1, 1, 0], [0, 1, 0]], (3, 3)) is None

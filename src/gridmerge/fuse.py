@@ -32,6 +32,65 @@ FUSION_RULES = ("average", "logodds", "max")
 _LOGODDS_CLIP = 1e-3
 
 
+def _cell_permutation(matrix) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(A, t)`` when the ``(2, 3)`` affine ``matrix`` moves the cell grid onto itself
+    (a quarter turn or mirroring, ``A`` with one entry of +-1 in each row and column, and
+    a whole-cell shift ``t``); ``None`` otherwise."""
+    m = np.asarray(matrix, dtype=float)
+    m = m[:2] if m.shape == (3, 3) else m
+    if m.shape != (2, 3) or not np.isfinite(m).all() or not np.array_equal(m, np.rint(m)):
+        return None
+    a, t = m[:, :2], m[:, 2]
+    if not (np.abs(a).sum(axis=0) == 1).all() or not (np.abs(a).sum(axis=1) == 1).all():
+        return None
+    return a, t
+
+
+def reindexed(data: np.ndarray, inverse, out_shape: Sequence[int], fill=np.nan) -> np.ndarray | None:
+    """``out(p) = data(inverse @ p)`` for ``inverse`` (output pixels ``(x, y)`` -> ``data``'s
+    pixels) that moves the cell grid onto itself: quarter turns, mirrorings and
+    whole-cell shifts, which every interpolation carries cell for cell. The cells are
+    copied (exactly, whatever OpenCV's interpolation does with round-off); ``fill`` off
+    ``data``. ``None`` for any other transform.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> d = np.arange(6.0).reshape(2, 3)
+    >>> reindexed(d, [[0, 1, 0], [-1, 0, 1]], (3, 2)).tolist()  # out(x, y) = d(y, 1 - x)
+    [[3.0, 0.0], [4.0, 1.0], [5.0, 2.0]]
+    >>> reindexed(d, [[1, 0, 2], [0, 1, 0]], (2, 2), fill=-1.0).tolist()  # out(x) = d(x + 2)
+    [[2.0, -1.0], [5.0, -1.0]]
+    >>> reindexed(d, [[1, 0, 0.5], [0, 1, 0]], (2, 3)) is None
+    True
+    """
+    found = _cell_permutation(inverse)
+    if found is None:
+        return None
+    a, t = found
+    src = np.asarray(data)
+    h, w = int(out_shape[0]), int(out_shape[1])
+    out = np.full((h, w), fill, dtype=src.dtype)
+    if a[0, 0] == 0:
+        # x_in = a01 y + t0, y_in = a10 x + t1: out[y, x] = data.T[x_in, y_in].
+        src, rs, rt, cs, ct = src.T, int(a[0, 1]), int(t[0]), int(a[1, 0]), int(t[1])
+    else:
+        rs, rt, cs, ct = int(a[1, 1]), int(t[1]), int(a[0, 0]), int(t[0])
+
+    def span(step: int, shift: int, n_out: int, n_in: int) -> tuple[int, int]:
+        # The outputs i with 0 <= step * i + shift < n_in.
+        lo, hi = (-shift, n_in - shift) if step > 0 else (shift - n_in + 1, shift + 1)
+        return max(0, lo), max(max(0, lo), min(n_out, hi))
+
+    y0, y1 = span(rs, rt, h, src.shape[0])
+    x0, x1 = span(cs, ct, w, src.shape[1])
+    if y0 < y1 and x0 < x1:
+        rows = rs * np.arange(y0, y1) + rt
+        cols = cs * np.arange(x0, x1) + ct
+        out[y0:y1, x0:x1] = src[rows[:, None], cols[None, :]]
+    return out
+
+
 def warp_values(
     data: np.ndarray,
     matrix: np.ndarray,
@@ -52,7 +111,9 @@ def warp_values(
     interpolation : {"linear", "nearest"}
         ``"linear"`` interpolates values and the known mask separately, so unknown cells
         never bleed into known ones: an output cell is known when at least half of its
-        interpolation weight falls on known cells.
+        interpolation weight falls on known cells. A transform that moves the cell grid
+        onto itself (quarter turns, mirrorings, whole-cell shifts) copies the cells
+        exactly, with either (:func:`reindexed`).
 
     Returns
     -------
@@ -63,14 +124,16 @@ def warp_values(
     m = m[:2] if m.shape == (3, 3) else m
     h, w = int(out_shape[0]), int(out_shape[1])
     src = np.asarray(data, dtype=np.float32)
+    if interpolation not in ("linear", "nearest"):
+        raise ValueError(f"unknown interpolation {interpolation!r} (use 'linear' or 'nearest')")
+    grid_move = _cell_permutation(m)
+    if grid_move is not None:  # cell for cell: copied, not interpolated
+        a, t = grid_move
+        moved = reindexed(src, np.hstack([a.T, (-a.T @ t)[:, None]]), (h, w))
+        return np.clip(moved, 0.0, 1.0, out=moved)
     known = (~np.isnan(src)).astype(np.float32)
     vals = np.nan_to_num(src, nan=0.0)
-    if interpolation == "nearest":
-        flag = cv2.INTER_NEAREST
-    elif interpolation == "linear":
-        flag = cv2.INTER_LINEAR
-    else:
-        raise ValueError(f"unknown interpolation {interpolation!r} (use 'linear' or 'nearest')")
+    flag = cv2.INTER_NEAREST if interpolation == "nearest" else cv2.INTER_LINEAR
     kw = dict(flags=flag, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
     wk = cv2.warpAffine(known, m, (w, h), **kw)
     wv = cv2.warpAffine(vals * known, m, (w, h), **kw)

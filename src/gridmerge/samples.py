@@ -29,6 +29,7 @@ from typing import Optional, Sequence, Union
 import cv2
 import numpy as np
 
+from .fuse import reindexed
 from .grid import DEFAULT_RESOLUTION, OCCUPIED_THRESHOLD, OccupancyGrid
 
 __all__ = [
@@ -826,6 +827,8 @@ def warp(
     known mask and the values (0 where unknown) are warped separately with a zero border;
     an output cell is known where the warped mask is at least 0.5, and its value is the
     warped value divided by the warped mask (so unknown neighbours do not dilute it).
+    Quarter turns, mirrorings and whole-cell shifts copy the cells exactly
+    (:func:`gridmerge.fuse.reindexed`).
 
     Parameters
     ----------
@@ -867,6 +870,10 @@ def warp(
     flags = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST}.get(interpolation)
     if flags is None:
         raise ValueError(f"interpolation must be 'linear' or 'nearest', got {interpolation!r}")
+    res = grid.resolution if resolution is None else resolution
+    moved = reindexed(grid.data, M, (H, W))
+    if moved is not None:  # quarter turns, mirrorings, whole-cell shifts: cell for cell
+        return OccupancyGrid(moved, resolution=res, origin=(0.0, 0.0, 0.0), name=name)
     known = grid.known.astype(np.float32)
     values = np.nan_to_num(grid.data, nan=0.0).astype(np.float32) * known
     kw = dict(flags=flags | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
@@ -875,7 +882,6 @@ def warp(
     out = np.full((H, W), np.nan, dtype=np.float32)
     ok = wk >= 0.5
     out[ok] = np.clip(wv[ok] / wk[ok], 0.0, 1.0)
-    res = grid.resolution if resolution is None else resolution
     return OccupancyGrid(out, resolution=res, origin=(0.0, 0.0, 0.0), name=name)
 
 
