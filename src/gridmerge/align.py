@@ -964,17 +964,31 @@ class _Judge:
         may not move it: farther than :data:`_POLISH_REACH`, or, with the maps'
         resolutions trusted, from a scale off their ratio by more than the refinement's
         scale prior allows."""
+        # (ICP keeps the pose's scale: off the maps' resolution ratio by more than the
+        # refinement's prior allows, it would fit the walls of one part at a wrong scale:
+        # simulated pair 3 of seed 2, a keypoint pose 7 % off in scale rose to confidence
+        # 0.7, 25 px from the truth, and the search stopped there. :meth:`_icp_polish`.)
+        p = self._icp_polish(t)
+        return None if p is None or self.far_apart(p, t, _POLISH_REACH) else p
+
+    def _icp_polish(self, t: AffineTransform) -> AffineTransform | None:
+        """``t`` polished by ICP on the walls (once per pose), however far it moves;
+        ``None`` where the scale rule of :meth:`_polish` forbids."""
         if self.opts.max_scale_disagreement is not None and _scale_disagreement(t, self.a, self.b) > _SCALE_PRIOR_RANGE - 1.0:
-            # ICP keeps the pose's scale: off the maps' resolution ratio by more than the
-            # refinement's prior allows, it would fit the walls of one part at a wrong
-            # scale (simulated pair 3 of seed 2: a keypoint pose 7 % off in scale rose
-            # to confidence 0.7, 25 px from the truth, and the search stopped there).
             return None
         k = self._key(t)
         if k not in self._polished:
             self._polished[k] = self.wall_icp().polish(SimilarityTransform(t.params))
-        p = self._polished[k]
-        return None if self.far_apart(p, t, _POLISH_REACH) else p
+        return self._polished[k]
+
+    def beyond_reach(self, t: AffineTransform) -> AffineTransform | None:
+        """``t``'s ICP polish when it moves b's corners farther than a polish may
+        (:data:`_POLISH_REACH`); ``None`` when it does not, or when ``t`` may not be
+        polished."""
+        if not self.opts.refine:
+            return None
+        p = self._icp_polish(t)
+        return p if p is not None and self.far_apart(p, t, _POLISH_REACH) else None
 
     def polished_wall(self, t: AffineTransform) -> float:
         """The full wall agreement of ``t`` polished by ICP on the walls, whatever the
@@ -1501,6 +1515,17 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
             candidates = candidates + rescaled
             wall, best, kind, runner_up, v = judge.decide(candidates)
             ratio, confidence = _judged(wall, runner_up, v)
+        # And a pose taken on walls agreeing below the settled bar may lie turned about the
+        # shared part from where they coincide, farther at b's corners than a polish may
+        # move it (held-out simulated pair 35 of seed 8: 0.7 degrees off, walls 50 %, b's
+        # far corners 17.5 px off; ICP on the walls from it: 0.2 px off, 88 %). When ICP
+        # finds walls agreeing on the settled bar and far better, judge again with that pose.
+        if confidence >= opts.min_confidence and _full_wall(v) < _SETTLED_WALL:
+            beyond = judge.beyond_reach(best)
+            if beyond is not None and _full_wall(judge._verify(beyond)) >= max(_SETTLED_WALL, _full_wall(v) + _UNSETTLED_GAIN):
+                candidates = candidates + [(beyond, f"{kind} (polished beyond reach)")]
+                wall, best, kind, runner_up, v = judge.decide(candidates)
+                ratio, confidence = _judged(wall, runner_up, v)
     if confidence < opts.min_confidence and opts.wall_led:
         # Then the wall-led correlation, which finds the right pose far more often when
         # the maps share little, but also poses that agree by chance on a small part:
@@ -2120,6 +2145,9 @@ _WALL_LED_RATIO = 0.8
 _CLEAR_RATIO = 0.5
 _CLEAR_WALL = 0.5
 _CLEAR_SHARED = 0.2
+#: A pose that would be taken on walls below the settled bar is judged again with its ICP
+#: polish beyond the polish's reach when that reaches the bar and this much more.
+_UNSETTLED_GAIN = 0.2
 #: Rotations tried around each direction candidate by the wall-led search (degrees): with
 #: two candidates 6 degrees apart (as the direction histograms give), no rotation between
 #: them is more than 1 degree from one tried.
