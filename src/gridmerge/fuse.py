@@ -65,10 +65,12 @@ def reindexed(data: np.ndarray, inverse, out_shape: Sequence[int], fill=np.nan) 
     True
     """
     found = _cell_permutation(inverse)
-    if found is None:
-        return None
-    a, t = found
-    src = np.asarray(data)
+    return None if found is None else _copy_cells(np.asarray(data), *found, out_shape, fill)
+
+
+def _copy_cells(src: np.ndarray, a: np.ndarray, t: np.ndarray, out_shape: Sequence[int], fill) -> np.ndarray:
+    """:func:`reindexed` for ``inverse = [a | t]`` already found to move the cell grid
+    onto itself (:func:`_cell_permutation`)."""
     h, w = int(out_shape[0]), int(out_shape[1])
     out = np.full((h, w), fill, dtype=src.dtype)
     if a[0, 0] == 0:
@@ -129,7 +131,7 @@ def warp_values(
     grid_move = _cell_permutation(m)
     if grid_move is not None:  # cell for cell: copied, not interpolated
         a, t = grid_move
-        moved = reindexed(src, np.hstack([a.T, (-a.T @ t)[:, None]]), (h, w))
+        moved = _copy_cells(src, a.T, -a.T @ t, (h, w), np.nan)  # the inverse of [a | t]
         return np.clip(moved, 0.0, 1.0, out=moved)
     known = (~np.isnan(src)).astype(np.float32)
     vals = np.nan_to_num(src, nan=0.0)
