@@ -2320,10 +2320,24 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
                     scale_off: float = 0.0, matched: bool = False) -> str:
     """Why a verified pose is declined ("" when it is not); ``scale_off``: its scale's
     disagreement with the maps' resolution ratio (:func:`_scale_disagreement`);
-    ``matched``: the keypoint matches confirm it (:attr:`Estimate.matched`)."""
-    if _scale_ruled_out(scale_off, opts):
-        return (f"declined: the scale disagrees with the maps' resolutions by {scale_off:.0%} "
-                f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
+    ``matched``: the keypoint matches confirm it (:attr:`Estimate.matched`).
+
+    A pose declined on its own merits (its walls, its confidence ...) says so first: the
+    best of poses that all fail is often at a chance scale (maps of two different places,
+    almost always), and "the scale disagrees; --any-scale" would send the user after the
+    resolutions. Only a pose that would be taken but for its scale names the option."""
+    reason = _merit_reason(inliers, v, conf, opts, need_inliers, matched)
+    if not _scale_ruled_out(scale_off, opts):
+        return reason
+    if reason:
+        return f"{reason}; nor does its scale agree with the maps' resolutions ({scale_off:.0%} off)"
+    return (f"declined: the scale disagrees with the maps' resolutions by {scale_off:.0%} "
+            f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
+
+
+def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool,
+                  matched: bool) -> str:
+    """:func:`_decline_reason` of a pose, its scale aside."""
     if need_inliers and inliers < opts.min_inliers:
         return f"declined: only {inliers} inlier matches (need {opts.min_inliers})"
     if v.overlap_cells < opts.min_overlap_cells:
