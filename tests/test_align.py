@@ -647,6 +647,52 @@ def test_a_pose_judged_on_a_handful_of_one_maps_walls_is_declined():
     assert _decline_reason(0, few, 0.77, replace(opts, min_overlap_walls=5), need_inliers=False) == ""
 
 
+def test_a_pose_whose_one_maps_walls_cross_the_others_rooms_is_declined():
+    """Fresh simulated seed 13, pair 19 (two places): a small map's 53 walls in the
+    overlap lay on the large map's walls, 52 of them, while 1047 of the large map's 1116
+    crossed the small map's free space; the mean of the two shares, 52 %, passed."""
+    from gridmerge.align import AlignOptions, _decline_reason
+    from gridmerge.verify import Verification
+
+    opts = AlignOptions()
+    one_sided = Verification(0.984, 67841, 1087, 0.52, 68928, 0.9995, 1116, 53, 69, 52)
+    assert _decline_reason(0, one_sided, 0.7, opts, need_inliers=False) == (
+        "declined: only 6% of one map's walls in the overlap lie on the other's walls "
+        "(need 15% of each; the rest cross the other's free space)")
+    assert _decline_reason(0, replace(one_sided, matched_a=400), 0.7, opts, need_inliers=False) == ""
+    assert _decline_reason(0, one_sided, 0.7, replace(opts, min_wall_share=0.0), need_inliers=False) == ""
+    # Results saved before the matched cells were counted are judged as before.
+    assert _decline_reason(0, replace(one_sided, matched_a=None, matched_b=None), 0.7, opts, need_inliers=False) == ""
+
+
+@pytest.mark.shared
+def test_a_small_map_fitted_inside_a_large_ones_free_space_is_declined(shared_data):
+    """Fresh simulated seed 13, pair 19 (HIH_01 and E5_13): the search on fewer pixels
+    fitted the small map inside the large one's rooms at confidence 0.70; its walls
+    cross the small map's free space, and it is declined for that."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=13, data_dir=shared_data)[19]
+    assert not case.positive
+    r = align(case.a, case.b, rng=0)
+    assert not r.success
+    assert "of one map's walls in the overlap lie on the other's" in r.details["coarse_look"]["message"]
+
+
+@pytest.mark.shared
+def test_a_walls_only_pose_the_other_side_gives_no_confidence_is_one_sided(shared_data):
+    """Fresh simulated seed 18, pair 50 (two robots in E5_02, 65 wall cells of the source
+    seen by both): the wall-led search took a pose 12.4 px off at 0.75, one-sided; the
+    search on fewer pixels found it again, and the search from b's side found the same
+    pose at confidence 0, which let it through. Now that is no confirmation."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=18, data_dir=shared_data)[50]
+    r = align(case.a, case.b, rng=0)
+    assert not r.success and r.message.startswith("declined: found from one map's side only")
+    assert "the same pose, but at confidence 0.00" in r.details["coarse_look"]["message"]
+
+
 @pytest.mark.shared
 def test_maps_of_two_places_whose_overlap_holds_few_walls_are_declined(shared_data):
     """Simulated seed 4, pair 49: two distant parts of Halmstad E5_08, whose best pose lays

@@ -84,6 +84,20 @@ def test_verify_counts_each_maps_walls_in_the_overlap():
     b[30, 32:38] = 1.0  # outside a's known cells
     v = verify(OccupancyGrid(a), OccupancyGrid(b), SimilarityTransform())
     assert (v.walls_a, v.walls_b) == (10, 20) and v.wall_agreement == 0.0
+    assert (v.matched_a, v.matched_b) == (0, 0)
+
+
+def test_verify_counts_each_maps_matched_walls():
+    """The wall agreement is the mean of the two maps' matched shares, and the counts
+    say which map's walls went unmatched."""
+    a = np.zeros((40, 40))
+    a[10, 5:15] = 1.0  # 10 wall cells, all on b's wall
+    a[30, 5:35] = 1.0  # 30 more, across b's free space
+    b = np.zeros((40, 40))
+    b[11, 5:15] = 1.0  # 10 wall cells, a cell from a's
+    v = verify(OccupancyGrid(a), OccupancyGrid(b), SimilarityTransform(), tolerance=2.0)
+    assert (v.walls_a, v.matched_a, v.walls_b, v.matched_b) == (40, 10, 10, 10)
+    assert v.wall_agreement == pytest.approx((10 / 40 + 10 / 10) / 2)
 
 
 def test_strided_cells_are_numpys_nonzero_with_a_stride():

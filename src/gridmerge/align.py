@@ -152,6 +152,17 @@ class AlignOptions:
         cells of one map, all matched, and 30 of the other, 7 matched. Right merges can
         rest on little: simulated pair 50 of seed 3 is merged right with 18 of one map's
         (at 20 it was declined). docs/benchmarks.md, eighteenth session.
+    min_wall_share : float
+        Decline when, of either map's occupied cells in the overlap, fewer than this share
+        lie within the tolerance of the other map's walls
+        (:attr:`~gridmerge.verify.Verification.matched_a` / ``walls_a``, ``matched_b`` /
+        ``walls_b``): the wall agreement is their mean, and a small map whose few walls
+        all lie on a large map's walls reaches half of it while the large map's walls
+        cross its rooms: fresh simulated seed 13, pair 19 (two places) was merged at
+        confidence 0.70 so, 52 of the small map's 53 walls matched and 69 of the large
+        one's 1116 (6 %). Right merges' lower share was 0.72 or more on simulated seeds
+        0-18, 0.26 or more on Halmstad's bent maps. docs/benchmarks.md, thirty-second
+        session.
     min_confidence : float
         Decline below this confidence (CLI ``--min-confidence``; docs/benchmarks.md, "The
         decline threshold", measures what lower values merge, rightly and wrongly).
@@ -208,6 +219,10 @@ class AlignOptions:
         found from both sides; two Halmstad ones found from one side only, at 0.57 and
         0.67, are declined (docs/benchmarks.md, ninth session). Pairs declined anyway
         whose best pose shares under 10 % of the smaller map are not sought again.
+        A pose only the walls found (no keypoint proposed it, their matches do not confirm
+        it) is not confirmed by the same pose from the other side at confidence 0: seen
+        from there its walls disagree or a clearly different pose fits as well
+        (docs/benchmarks.md, thirty-second session).
         ``None`` searches from the reference's side only: pairs below this take half the
         time. CLI
         ``--one-sided-confidence``.
@@ -280,6 +295,7 @@ class AlignOptions:
     min_wall_agreement_matched: float = 0.3
     min_overlap_cells: int = 100
     min_overlap_walls: int = 10
+    min_wall_share: float = 0.15
     min_confidence: float = 0.5
     max_keypoints: int = 20000
     feature_pixels: int = 400_000
@@ -1299,6 +1315,22 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
     moved = math.inf if back is None else judge.moved(forward.transform, back)
     note = {"confidence": round(other, 4), "moved_px": round(moved, 1) if math.isfinite(moved) else None,
             "source": reverse.details.get("source")}
+    if moved < _OTHER_POSE_PX and other <= _CONFIRMING and not _has_keypoint_support(forward):
+        # The same merge, but the other side gives it no confidence at all (its walls do
+        # not agree there, or a clearly different pose fits as well), and only the walls
+        # found it: the same evidence seen twice, the second time rejected, is no second
+        # view. Fresh simulated seed 18, pair 50 (two robots in E5_02, 65 wall cells of
+        # the source seen by both) was merged 12.4 px off at 0.75 so, found by the walls
+        # alone; the first search had found it one-sided (the other side's pose 65 px
+        # away), the search on fewer pixels then found it again, its other side 26 px
+        # away at confidence 0. Poses the keypoints proposed or confirm keep the rule
+        # (sensor-to-layout pairs of Halmstad: right merges at 0.54-0.61 whose other side
+        # gives 0, their poses proposed by the blurred maps' keypoints).
+        forward.details["other_side"] = {**note, "same_pose": True, "taken": False, "confirms": False}
+        forward.one_sided = (f"declined: found from one map's side only (from the other's the search finds the same "
+                             f"pose, but at confidence {other:.2f}); a one-sided pose needs confidence {tau:g} "
+                             f"(has {own:.2f})")
+        return forward
     if moved < _OTHER_POSE_PX:
         # The same merge from both sides: the more confident side's pose and confidence.
         if other <= own:
@@ -1314,6 +1346,12 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
     forward.one_sided = (f"declined: found from one map's side only (from the other's the search finds {where}); "
                          f"a one-sided pose needs confidence {tau:g} (has {own:.2f})")
     return forward
+
+
+def _has_keypoint_support(est: Estimate) -> bool:
+    """Whether keypoint matches proposed ``est``'s pose or confirm it: evidence other
+    than the walls' agreement."""
+    return est.matched or str(est.details.get("source", "")).startswith("keypoints")
 
 
 def _finished(est: Estimate, judge: _Judge, *, reverse: bool) -> Estimate:
@@ -2103,7 +2141,8 @@ def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: flo
         keypoints=(r.keypoints[1], r.keypoints[0]),
         elapsed_s=elapsed_s,
         inlier_xy=r.inlier_xy[:, ::-1].copy(),
-        verification=None if r.verification is None else replace(r.verification, walls_a=r.verification.walls_b, walls_b=r.verification.walls_a),
+        verification=None if r.verification is None else replace(r.verification, walls_a=r.verification.walls_b, walls_b=r.verification.walls_a,
+                                                                     matched_a=r.verification.matched_b, matched_b=r.verification.matched_a),
         details={**r.details, "searched_from": "b"},
     )
 
@@ -2192,6 +2231,9 @@ _FINISH_REACH = 3.0
 _MIN_WALLS_COMPARED = 40
 #: ... and share of the smaller map it must overlap.
 _MIN_SHARED = 0.05
+#: A pose only the walls found, and the search from the other map's side finds again at
+#: no more than this confidence, is not found from both sides (:func:`_both_sides`).
+_CONFIRMING = 0.0
 #: Two candidate transforms closer than this (b's corners, a's pixels) are one pose.
 _SAME_POSE_PX = 10.0
 #: ... and farther than this, two clearly different poses (for the ambiguity check).
@@ -2336,6 +2378,15 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
             f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
 
 
+def _wall_shares(v: Verification) -> tuple[float, float] | None:
+    """Each map's share of its walls in the overlap that lie on the other's walls
+    (``None`` when a verification saved before they were counted, or one without walls,
+    does not tell)."""
+    if v.matched_a is None or v.matched_b is None or not v.walls_a or not v.walls_b:
+        return None
+    return v.matched_a / v.walls_a, v.matched_b / v.walls_b
+
+
 def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool,
                   matched: bool) -> str:
     """:func:`_decline_reason` of a pose, its scale aside."""
@@ -2351,6 +2402,10 @@ def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions
     floor = opts.min_wall_agreement_matched if matched else opts.min_wall_agreement
     if not math.isfinite(v.wall_agreement) or v.wall_agreement < floor:
         return f"declined: walls agree on {v.wall_agreement:.0%} of the overlap (need {floor:.0%})"
+    shares = _wall_shares(v)
+    if shares is not None and min(shares) < opts.min_wall_share:
+        return (f"declined: only {min(shares):.0%} of one map's walls in the overlap lie on the other's walls "
+                f"(need {opts.min_wall_share:.0%} of each; the rest cross the other's free space)")
     if conf < opts.min_confidence:
         return f"declined: confidence {conf:.2f} below {opts.min_confidence}"
     return ""

@@ -61,6 +61,10 @@ class Verification:
         Occupied cells of a, and of b moved into a's cells, in the overlap: what
         ``wall_agreement``'s two shares are taken of (``None`` in results saved before
         they were recorded).
+    matched_a, matched_b : int or None
+        Of those, the cells within ``tolerance`` of the other map's walls: the wall
+        agreement is the mean of ``matched_a / walls_a`` and ``matched_b / walls_b``
+        (``None`` in results saved before they were recorded).
     """
 
     acceptance_index: float
@@ -71,6 +75,8 @@ class Verification:
     overlap_fraction: float
     walls_a: int | None = None
     walls_b: int | None = None
+    matched_a: int | None = None
+    matched_b: int | None = None
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
@@ -241,18 +247,16 @@ def verify(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, to
     dis = int(np.count_nonzero(ao & bf) + np.count_nonzero(af & bo))
     index = agr / (agr + dis) if agr + dis else math.nan
     na, nb = int(np.count_nonzero(ao)), int(np.count_nonzero(bo))
-    shares = []
+    ma = mb = 0
     if na and nb:
-        shares.append(np.count_nonzero(ao & _near(bo, tolerance)) / na)
-        shares.append(np.count_nonzero(bo & _near(ao, tolerance)) / nb)
-    elif na or nb:
-        shares.append(0.0)
-    wall = float(np.mean(shares)) if shares else math.nan
+        ma = int(np.count_nonzero(ao & _near(bo, tolerance)))
+        mb = int(np.count_nonzero(bo & _near(ao, tolerance)))
+    wall = (ma / na + mb / nb) / 2 if na and nb else 0.0 if na or nb else math.nan
     scale2 = abs(float(np.linalg.det(transform.params[:2, :2])))
     known_b_in_a = np.count_nonzero(b.known) * scale2
     smaller = min(float(np.count_nonzero(a.known)), known_b_in_a)
     fraction = overlap / smaller if smaller > 0 else 0.0
-    return Verification(index, agr, dis, wall, overlap, min(1.0, fraction), na, nb)
+    return Verification(index, agr, dis, wall, overlap, min(1.0, fraction), na, nb, ma, mb)
 
 
 @dataclass(frozen=True)

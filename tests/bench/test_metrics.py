@@ -10,6 +10,7 @@ import pytest
 from gridmerge import OccupancyGrid, samples
 from gridmerge.align import AlignResult
 from gridmerge.bench.datasets import Case
+from gridmerge.verify import Verification
 from gridmerge.bench.metrics import PRECISE_PX, SUCCESS_PX, Record, ecc_reference, evaluate, judge, summarize
 from gridmerge.transforms import SimilarityTransform, corner_error
 
@@ -95,6 +96,7 @@ def _result(matrix, success=True):
     return AlignResult(
         success=success, transform=t if success else None, candidate=t, metric_transform=None, confidence=0.9,
         acceptance_index=0.95, inliers=30, matches=100, keypoints=(10, 10), method="sift", message="ok", elapsed_s=0.5,
+        verification=Verification(0.95, 95, 5, 0.8, 100, 0.6, 12, 10, 9, 8), details={"source": "walls"},
     )
 
 
@@ -105,6 +107,7 @@ def test_evaluate_builds_a_record():
     assert rec.cells == 50 * 60 + SHAPE[0] * SHAPE[1] and rec.b_shape == list(SHAPE)
     assert rec.overlap == 0.6 and rec.wall_s == 0.6 and rec.align_s == 0.5 and rec.peak_mb == 12.0
     assert Record.from_dict(rec.to_dict()) == rec
+    assert rec.details == {"source": "walls"} and rec.verification["walls_a"] == 12
     declined = evaluate(_case(), _result(_shifted(1.0), success=False))
     assert declined.declined and declined.candidate_corner_error_px == pytest.approx(1.0)
     crashed = evaluate(_case(), None, error="ValueError: boom")

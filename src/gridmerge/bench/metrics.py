@@ -112,6 +112,11 @@ class Record:
     shared_walls : int or None
         Simulated positive pairs: the source's cells both robots saw as walls (``meta``).
     source : str or None
+    verification : dict or None
+        ``AlignResult.verification`` as a dict: the agreement the decision was made on.
+    details : dict or None
+        ``AlignResult.details``: the method's own diagnostics (which search found the
+        pose, its rivals, ...), for reading why a case went as it did.
     """
 
     method: str
@@ -152,6 +157,8 @@ class Record:
     scale: Optional[float] = None
     noise: Optional[float] = None
     source: Optional[str] = None
+    verification: Optional[dict] = None
+    details: Optional[dict] = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -358,6 +365,8 @@ def evaluate(case, result, *, wall_s: float = 0.0, peak_mb=None, max_rss_mb=None
         scale=_finite(meta.get("scale")),
         noise=_finite(meta.get("noise")),
         source=meta.get("source"),
+        verification=None if result is None or result.verification is None else result.verification.to_dict(),
+        details=None if result is None else dict(result.details),
     )
 
 
