@@ -525,7 +525,8 @@ def test_swapping_the_maps_inverts_the_transform_and_keeps_the_decision(pair):
     assert (r1.confidence, r1.message, r1.inliers, r1.matches) == (r2.confidence, r2.message, r2.inliers, r2.matches)
     assert r1.keypoints == r2.keypoints[::-1]
     v2 = r2.verification
-    assert r1.verification == replace(v2, walls_a=v2.walls_b, walls_b=v2.walls_a)  # per-map counts swapped
+    assert r1.verification == replace(v2, walls_a=v2.walls_b, walls_b=v2.walls_a,  # per-map counts swapped
+                                      matched_a=v2.matched_b, matched_b=v2.matched_a)
     assert {r1.details.pop("searched_from"), r2.details.pop("searched_from")} == {"a", "b"} and r1.details == r2.details
     assert np.array_equal(r1.inlier_xy, r2.inlier_xy[:, ::-1])
     if r1.success:

@@ -160,7 +160,7 @@ class AlignOptions:
         all lie on a large map's walls reaches half of it while the large map's walls
         cross its rooms: fresh simulated seed 13, pair 19 (two places) was merged at
         confidence 0.70 so, 52 of the small map's 53 walls matched and 69 of the large
-        one's 1116 (6 %). Right merges' lower share was 0.72 or more on simulated seeds
+        one's 1116 (6 %). Right merges' lower share was 0.50 or more on simulated seeds
         0-18, 0.26 or more on Halmstad's bent maps. docs/benchmarks.md, thirty-second
         session.
     min_confidence : float
