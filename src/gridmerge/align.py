@@ -2141,8 +2141,7 @@ def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: flo
         keypoints=(r.keypoints[1], r.keypoints[0]),
         elapsed_s=elapsed_s,
         inlier_xy=r.inlier_xy[:, ::-1].copy(),
-        verification=None if r.verification is None else replace(r.verification, walls_a=r.verification.walls_b, walls_b=r.verification.walls_a,
-                                                                     matched_a=r.verification.matched_b, matched_b=r.verification.matched_a),
+        verification=None if r.verification is None else r.verification.swapped(),
         details={**r.details, "searched_from": "b"},
     )
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import cv2
 import numpy as np
@@ -80,6 +80,11 @@ class Verification:
 
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
+
+    def swapped(self) -> "Verification":
+        """The same verification with the two maps' roles exchanged (the per-map counts
+        swapped; the shared counts and shares are symmetric already)."""
+        return replace(self, walls_a=self.walls_b, walls_b=self.walls_a, matched_a=self.matched_b, matched_b=self.matched_a)
 
 
 def acceptance_index(p: np.ndarray, q: np.ndarray, *, occupied: float = OCCUPIED_THRESHOLD, free: float = FREE_THRESHOLD):

@@ -10,9 +10,9 @@ import pytest
 from gridmerge import OccupancyGrid, samples
 from gridmerge.align import AlignResult
 from gridmerge.bench.datasets import Case
-from gridmerge.verify import Verification
 from gridmerge.bench.metrics import PRECISE_PX, SUCCESS_PX, Record, ecc_reference, evaluate, judge, summarize
 from gridmerge.transforms import SimilarityTransform, corner_error
+from gridmerge.verify import Verification
 
 SHAPE = (200, 300)
 TRUTH = np.array(
