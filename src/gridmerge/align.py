@@ -223,6 +223,11 @@ class AlignOptions:
         it) is not confirmed by the same pose from the other side at confidence 0: seen
         from there its walls disagree or a clearly different pose fits as well
         (docs/benchmarks.md, thirty-second session).
+        When the first side declines outright (below :attr:`min_confidence`) and the
+        other side finds another pose at this confidence or more, that pose is taken if
+        it clearly beats the first side's best (walls agreeing on at least twice the
+        share, counted in the first side's frame): the first side found no fit at all,
+        not a rival fit (docs/benchmarks.md, thirty-third session).
         ``None`` searches from the reference's side only: pairs below this take half the
         time. CLI
         ``--one-sided-confidence``.
@@ -1287,12 +1292,15 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng, memory: _PairMemory 
 
 def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | None = None) -> Estimate:
     """The search from a's side; below ``opts.one_sided_confidence``, judged with the
-    search from b's side as well (:attr:`AlignOptions.one_sided_confidence`).
+    search from b's side as well (:attr:`AlignOptions.one_sided_confidence`). A's side
+    declined, b's side's pose is taken when b's side would take it alone and it clearly
+    beats a's side's best.
 
     ``details["other_side"]`` describes the search from b's side: its ``confidence``,
     how far its pose moves the shared part (``moved_px``), its ``source``, whether it is
     the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
-    and ``details["first_side"]`` holds a's side's confidence and source."""
+    and ``details["first_side"]`` holds a's side's confidence and source (and, for
+    another pose, its best pose's ``wall_agreement``)."""
     memory = _PairMemory() if memory is None else memory
     judge = _Judge(a, b, opts, pool=pool, memory=memory.side(False))
     second = _SecondLook(a, b, opts, (fa.blurred, fb.blurred)) if opts.second_look > 0 else None
@@ -1341,6 +1349,27 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         taken = Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=judge._verify(back),
                          confidence=other, matched=reverse.matched)
         return _finished(taken, judge, reverse=True)
+    if back is not None and own < opts.min_confidence and other >= tau:
+        # a's side declines and b's finds a pose it would take from its side alone: the
+        # pose a search from b's side first would give (which map is searched from is a
+        # convention: AlignOptions.search_from). Taken when it clearly beats the best
+        # pose a's side found, a's side's best measured as its rival (its walls agree on
+        # at most _CLEAR_RATIO of the share of b's pose, both counted in a's frame): a's
+        # side found no fit, rather than fits as good as b's pose. A small map fits a
+        # large building by chance in many places, and from the small map's side such a
+        # fit can look sure: the apartment HIH_01 laid into the office E5_01 at 0.99
+        # (walls 70 %), E5_01's best pose agreeing on 44 %; E5_09's on 52 % against 61 %.
+        # The simulated positives so taken agreed on 80-97 %, a's side's best on 9-18 %
+        # (docs/benchmarks.md, thirty-third session). Every decline rule still applies.
+        first = forward.verification or judge._verify(forward.transform)
+        theirs = judge._verify(back)
+        if _full_wall(first) <= _CLEAR_RATIO * _full_wall(theirs):
+            details = {**reverse.details, "other_side": {**note, "same_pose": False, "taken": True},
+                       "first_side": {"confidence": round(own, 4), "source": forward.details.get("source"),
+                                      "wall_agreement": round(_full_wall(first), 4)}}
+            taken = Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=theirs,
+                             confidence=other, matched=reverse.matched)
+            return _finished(taken, judge, reverse=True)
     forward.details["other_side"] = {**note, "same_pose": False}
     where = "no pose" if back is None else f"a pose {moved:.0f} px away" if math.isfinite(moved) else "a pose that shares nothing with it"
     forward.one_sided = (f"declined: found from one map's side only (from the other's the search finds {where}); "
