@@ -1344,11 +1344,7 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         if other <= own:
             forward.details["other_side"] = {**note, "same_pose": True, "taken": False}
             return _finished(forward, judge, reverse=False)
-        details = {**reverse.details, "other_side": {**note, "same_pose": True, "taken": True},
-                   "first_side": {"confidence": round(own, 4), "source": forward.details.get("source")}}
-        taken = Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=judge._verify(back),
-                         confidence=other, matched=reverse.matched)
-        return _finished(taken, judge, reverse=True)
+        return _other_side_taken(forward, reverse, back, judge, {**note, "same_pose": True})
     if back is not None and own < opts.min_confidence and other >= tau:
         # a's side declines and b's finds a pose it would take from its side alone: the
         # pose a search from b's side first would give (which map is searched from is a
@@ -1364,17 +1360,26 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         first = forward.verification or judge._verify(forward.transform)
         theirs = judge._verify(back)
         if _full_wall(first) <= _CLEAR_RATIO * _full_wall(theirs):
-            details = {**reverse.details, "other_side": {**note, "same_pose": False, "taken": True},
-                       "first_side": {"confidence": round(own, 4), "source": forward.details.get("source"),
-                                      "wall_agreement": round(_full_wall(first), 4)}}
-            taken = Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=theirs,
-                             confidence=other, matched=reverse.matched)
-            return _finished(taken, judge, reverse=True)
+            return _other_side_taken(forward, reverse, back, judge, {**note, "same_pose": False},
+                                     wall_agreement=round(_full_wall(first), 4))
     forward.details["other_side"] = {**note, "same_pose": False}
     where = "no pose" if back is None else f"a pose {moved:.0f} px away" if math.isfinite(moved) else "a pose that shares nothing with it"
     forward.one_sided = (f"declined: found from one map's side only (from the other's the search finds {where}); "
                          f"a one-sided pose needs confidence {tau:g} (has {own:.2f})")
     return forward
+
+
+def _other_side_taken(forward: Estimate, reverse: Estimate, back, judge: _Judge, note: dict, **first_side) -> Estimate:
+    """The search from b's side's pose ``back`` (its transform inverted, in a's frame)
+    taken, with its own details and confidence; ``details["other_side"]`` is ``note``
+    marked taken and ``details["first_side"]`` holds a's side's confidence and source
+    and ``first_side``'s further entries."""
+    details = {**reverse.details, "other_side": {**note, "taken": True},
+               "first_side": {"confidence": round(forward.confidence or 0.0, 4), "source": forward.details.get("source"),
+                              **first_side}}
+    taken = Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=judge._verify(back),
+                     confidence=reverse.confidence or 0.0, matched=reverse.matched)
+    return _finished(taken, judge, reverse=True)
 
 
 def _has_keypoint_support(est: Estimate) -> bool:
