@@ -191,6 +191,20 @@ def test_declines_blank_maps(method, blank, robots_37):
         assert not r.success and r.transform is None and r.message
 
 
+def test_hough_hypotheses_sharing_no_cell_have_no_index(monkeypatch, robots_37):
+    # Birk & Carpin's index is undefined where the maps share no known cell: such a
+    # hypothesis is not ranked, and its index in the details is None (JSON null), not NaN.
+    import gridmerge.baselines as baselines
+
+    monkeypatch.setattr(baselines, "acceptance_index", lambda p, q: (math.nan, 0, 0))
+    a, b, _ = robots_37
+    r = align(a, b, method="hough")
+    assert not r.success and r.message.startswith("declined: no hypothesis shares")
+    hyps = r.details["hypotheses"]
+    assert hyps and all(h["acceptance_index"] is None for h in hyps)
+    json.dumps(r.details, allow_nan=False, default=float)
+
+
 @pytest.mark.parametrize("method", ["orb", "hough"])
 def test_deterministic(method, robots_37):
     a, b, _ = robots_37

@@ -473,7 +473,9 @@ def _estimate_hough(a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, p: H
     ranked = sorted(usable, key=lambda h: (-h[2], -h[3]))
     details["dominant_direction_deg"] = math.degrees(phi)
     details["hypotheses"] = [
-        {"rotation_deg": round(d % 360.0, 4), "translation": [round(float(x), 3) for x in t], "acceptance_index": round(float(ai), 5), "agreement": agr, "disagreement": dis}
+        {"rotation_deg": round(d % 360.0, 4), "translation": [round(float(x), 3) for x in t],
+         # None: no cell known in both (the index is undefined)
+         "acceptance_index": round(float(ai), 5) if math.isfinite(ai) else None, "agreement": agr, "disagreement": dis}
         for d, t, ai, agr, dis in sorted(hypotheses, key=lambda h: (-(h[2] if math.isfinite(h[2]) else -1.0), -h[3]))
     ]
     if not ranked:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -114,6 +115,21 @@ def test_evaluate_builds_a_record():
     assert crashed.declined and crashed.error == "ValueError: boom"
     false_merge = evaluate(_case(positive=False), _result(TRUTH))
     assert false_merge.false_merge
+
+
+def test_a_methods_nan_diagnostics_are_written_as_null():
+    # A baseline's details may hold NaN (Carpin's index of a hypothesis sharing no known
+    # cell); the results are strict JSON, so the record holds None there, and a run of
+    # an hour is not lost to one value (the thirty-fifth session's run stopped on it).
+    from dataclasses import replace
+
+    from gridmerge.bench.runner import _dumps
+
+    details = {"hypotheses": [{"acceptance_index": float("nan"), "shift": (1.0, np.float64("inf"))}], "n": 2}
+    rec = evaluate(_case(), replace(_result(_shifted(1.0)), details=details))
+    line = _dumps(rec.to_dict())
+    assert json.loads(line)["details"] == {"hypotheses": [{"acceptance_index": None, "shift": [1.0, None]}], "n": 2}
+    assert math.isnan(details["hypotheses"][0]["acceptance_index"])  # the result's own details untouched
 
 
 def test_summaries():

@@ -39,6 +39,7 @@ from typing import Iterable, Optional, Sequence
 
 import numpy as np
 
+from ..io.jsonable import finite
 from ..transforms import AffineTransform, corner_error
 
 __all__ = [
@@ -366,7 +367,8 @@ def evaluate(case, result, *, wall_s: float = 0.0, peak_mb=None, max_rss_mb=None
         noise=_finite(meta.get("noise")),
         source=meta.get("source"),
         verification=None if result is None or result.verification is None else result.verification.to_dict(),
-        details=None if result is None else dict(result.details),
+        # A method's own diagnostics may hold NaN (an index of no shared cell): null in JSON.
+        details=None if result is None else finite(dict(result.details)),
     )
 
 

@@ -25,6 +25,7 @@ from ..errors import GridMergeError, LimitExceededError, OutputError
 from ..fuse import FUSION_RULES
 from ..grid import DEFAULT_RESOLUTION
 from ..io import SAVE_MODES, load_map, save_map
+from ..io.jsonable import finite
 from ..io.map_server import YAML_SUFFIXES, yaml_image_path
 from ..limits import DEFAULT_LIMITS, Limits, extractor_for
 from ..merge import PAIR_STRATEGIES, SCALE_CHECKS, merge
@@ -267,19 +268,8 @@ def _load_all(paths: Sequence[str], resolution: float | None, limits: Limits):
     ]
 
 
-def _finite(obj):
-    """``obj`` with every NaN or infinite float replaced by None (JSON has neither)."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    return obj
-
-
 def _print_json(obj) -> None:
-    sys.stdout.write(json.dumps(_finite(obj), indent=2, allow_nan=False) + "\n")
+    sys.stdout.write(json.dumps(finite(obj), indent=2, allow_nan=False) + "\n")
 
 
 def _capped_note(result, limits: Limits) -> str:
