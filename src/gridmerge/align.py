@@ -89,6 +89,7 @@ from .errors import GridMergeError
 from .estimate import MatchEvidence, match_evidence, paper_consensus, ransac, similarity_hypotheses
 from .features import FeatureExtractor, Features, GreyRenderer, SIFT
 from .grid import OccupancyGrid
+from .io.jsonable import finite
 from .matching import knn, match_nn, match_smnn, match_snn
 from .refine import WallICP, prepare_fields, refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
@@ -429,7 +430,7 @@ class AlignResult:
         d["transform"] = None if t is None else t.to_dict()
         d["candidate"] = None if self.candidate is None else self.candidate.to_dict()
         d["metric_transform"] = None if self.metric_transform is None else self.metric_transform.to_dict()
-        d["details"] = self.details
+        d["details"] = finite(self.details)  # a copy, NaN (a method's undefined index) as None
         return d
 
     def to_json(self, **kwargs) -> str:
