@@ -54,25 +54,31 @@ def _run(capsys, *args, cwd=None):
 
 @pytest.fixture(scope="module")
 def bag_merge(fleet_dir, tmp_path_factory):
-    """The whole sample bag merged once: JSON, merged map, ROS 2 out-bag, picture (on two
-    worker processes, which give the same merge as one: test_workers_give_the_same_merge)."""
+    """Three robots and the stranger chosen from the sample bag by topic, merged once: JSON,
+    merged map, ROS 2 out-bag, picture (on two worker processes, which give the same merge
+    as one: test_workers_give_the_same_merge). The eight robots' merge is the library's
+    (tests/test_fleet.py); a bag's topics all merge by default in
+    test_files_ros1_and_ros2_bags_give_the_same_merge."""
     import contextlib
     import io
 
     out = tmp_path_factory.mktemp("bagmerge")
+    args = ["merge", str(fleet_dir / "fleet.bag"), "-o", str(out / "merged.yaml"), "--json",
+            "--out-bag", str(out / "merged_bag"), "--plot", str(out / "fleet.png"), "--workers", "2"]
+    for name in TRIO + ["stranger"]:
+        args += ["--topic", f"/{name}/map"]
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        code = main(["merge", str(fleet_dir / "fleet.bag"), "-o", str(out / "merged.yaml"), "--json",
-                     "--out-bag", str(out / "merged_bag"), "--plot", str(out / "fleet.png"), "--workers", "2"])
+        code = main(args)
     return code, json.loads(buf.getvalue()), out
 
 
-def test_fleet_from_a_bag_places_eight_robots_and_leaves_the_stranger_out(bag_merge):
+def test_topics_from_a_bag_place_the_robots_and_leave_the_stranger_out(bag_merge):
     code, d, out = bag_merge
     assert code == 0 and d["success"]
     assert d["unplaced"] == ["/stranger/map"]
     placed = [e["name"] for e in d["maps"] if e["placed"]]
-    assert placed == [f"/{n}/map" for n in ROBOTS]
+    assert placed == [f"/{n}/map" for n in TRIO]
     assert d["out_bag"] == str(out / "merged_bag") and d["output"] == str(out / "merged.yaml")
     assert (out / "fleet.png").read_bytes().startswith(b"\x89PNG")
 
@@ -102,14 +108,9 @@ def test_out_bag_holds_the_merged_map(bag_merge):
     np.testing.assert_array_equal(m.occupied()[both], merged.occupied()[both])
 
 
-def test_fleet_json_names_maps_by_topic(fleet_dir, capsys, tmp_path):
+def test_fleet_json_names_maps_by_topic(fleet_dir, bag_merge):
     # The three-robot subset plus the stranger, from the bag, by --topic.
-    args = ["merge", fleet_dir / "fleet.bag", "-o", tmp_path / "m.yaml", "--json"]
-    for name in TRIO + ["stranger"]:
-        args += ["--topic", f"/{name}/map"]
-    code, out, err = _run(capsys, *args)
-    assert code == 0, err
-    d = json.loads(out)
+    _, d, _ = bag_merge
     names = [e["name"] for e in d["maps"]]
     assert names == [f"/{n}/map" for n in TRIO + ["stranger"]]
     assert d["unplaced"] == ["/stranger/map"] and d["reference"] == "/robot1/map"
