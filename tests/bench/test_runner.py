@@ -174,6 +174,7 @@ def test_cli_run_and_compare(tmp_path, capsys):
     assert "paper" in captured.out and f"results: {out1}" in captured.out
     assert "'nope' is not registered" in captured.err
     assert "[" not in captured.err  # no progress bar: stderr is not a terminal
+    assert json.loads((out1 / "config.json").read_text())["memory"] is True  # peak memory measured by default
     args = p.parse_args(["bench", "run", "--dataset", "paper", "--quick", "--methods", "paper", "--out", str(out2), "--no-plots", "--progress", "--seed", "1"])
     assert cli_bench.run(args) == 0
     captured = capsys.readouterr()
@@ -197,7 +198,9 @@ def test_cli_options_without_parents():
     args = p.parse_args(["bench", "--quick", "--seed", "4", "run", "--n", "3", "--dataset", "simulated", "--dataset", "halmstad"])
     assert (args.bench_quick, args.bench_seed, args.bench_n, args.bench_datasets) == (True, 4, 3, ["simulated", "halmstad"])
     args = p.parse_args(["bench"])
-    assert args.bench_datasets is None and args.bench_seed == 0 and args.bench_plots
+    assert args.bench_datasets is None and args.bench_seed == 0 and args.bench_plots and args.bench_memory
+    assert not p.parse_args(["bench", "--no-memory"]).bench_memory
+    assert not p.parse_args(["bench", "run", "--no-memory"]).bench_memory
 
 
 def test_all_skips_the_halmstad_pairs_when_the_folder_has_none(tmp_path):

@@ -96,6 +96,8 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
     add("--progress", "bench_progress", False, action="store_true", help="show a progress bar on stderr even when it is not a terminal")
     add("--force", "bench_force", False, action="store_true", help="replace the results in an existing folder")
     add("--no-plots", "bench_plots", True, action="store_false", help="do not draw the PNG plots")
+    add("--no-memory", "bench_memory", True, action="store_false",
+        help="do not measure each call's peak memory (tracemalloc, which makes the calls about 1.5-1.7x slower)")
     for flag, name in _decline.FLAGS.items():
         add(flag, "bench_" + name, None, type=_decline.confidence, metavar="C",
             help=_decline.help_text(name) + "; gridmerge's own methods only, the baselines keep their rules")
@@ -203,7 +205,7 @@ def _cmd_run(args) -> int:
     for dest, default in (
         ("bench_datasets", None), ("bench_methods", None), ("bench_n", None), ("bench_seed", 0),
         ("bench_quick", False), ("bench_out", None), ("bench_data", None), ("bench_progress", False),
-        ("bench_force", False), ("bench_plots", True),
+        ("bench_force", False), ("bench_plots", True), ("bench_memory", True),
         *(("bench_" + name, None) for name in _decline.FLAGS.values()),
     ):
         setattr(args, dest, _value(args, dest, default))
@@ -229,6 +231,7 @@ def _cmd_run(args) -> int:
         quick=args.bench_quick,
         data_dir=args.bench_data,
         plots=args.bench_plots,
+        memory=args.bench_memory,
         overwrite=args.bench_force,
         options=_decline.overrides({name: getattr(args, "bench_" + name) for name in _decline.FLAGS.values()}),
     )
