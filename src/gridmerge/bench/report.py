@@ -177,8 +177,10 @@ def results_markdown(bench) -> str:
         "pairs whose best candidate would have been a success (declined too cautiously). **wrong**: aligned but not a success. "
         "**false merges**: negative pairs (different places) that were aligned.\n"
         "* **err**: of the successes (corner error; median point error on Halmstad). **s**: wall time of the align "
-        "call. **peak MB**: tracemalloc peak during the call (numpy and Python allocations; memory that OpenCV "
-        "allocates natively is not seen; the process's max RSS is in `cases.jsonl`).\n"
+        "call (with peak MB measured, under tracemalloc, which slows the calls about 1.5-1.7x: compare the methods' "
+        "times with one another). **peak MB**: tracemalloc peak during the call (numpy and Python allocations; memory "
+        "that OpenCV allocates natively is not seen; the process's max RSS is in `cases.jsonl`; `--no-memory`: not "
+        "measured).\n"
     )
     return "".join(out)
 
