@@ -149,6 +149,54 @@ def test_threads_change_nothing(monkeypatch, request, pair):
     np.testing.assert_array_equal(threaded.candidate.params, serial.candidate.params)
     assert (threaded.success, threaded.confidence, threaded.details) == (serial.success, serial.confidence, serial.details)
     assert threaded.verification == serial.verification
+    if pair == "different places":
+        # Declined from both sides: with two cores the search from b's side ran in a
+        # thread of its own alongside a's (_OtherSide); serially, after it.
+        assert "other_side" in threaded.details
+
+
+def test_a_search_no_longer_wanted_stops_at_its_next_costly_step():
+    import threading
+
+    align_mod = importlib.import_module("gridmerge.align")
+    a, b, truth = samples.robot_pair(1)
+    cancel = threading.Event()
+    judge = align_mod._Judge(a, b, gridmerge.AlignOptions(), cancel=cancel)
+    judge.prepare()
+    t = SimilarityTransform(truth)
+    assert judge.quick(t) > 0.5  # not cancelled: it works
+    cancel.set()
+    with pytest.raises(align_mod._Cancelled):
+        judge.quick(SimilarityTransform(translation=(5, 0)) @ t)  # a new pose: a costly step
+    with pytest.raises(align_mod._Cancelled):
+        judge._refined(t)
+    assert judge.quick(t) > 0.5  # what it knows it still answers
+
+    # The other side's search, in its thread, stops when cancelled, and the thread ends.
+    steps = []
+
+    def search(event):
+        j = align_mod._Judge(a, b, gridmerge.AlignOptions(), cancel=event)
+        for k in range(2000):
+            steps.append(k)
+            j.check()
+            threading.Event().wait(0.005)
+        return "ran to its end"
+
+    side = align_mod._OtherSide(search)
+    assert not side.started
+    side.start()
+    assert side.started
+    while not steps:
+        threading.Event().wait(0.005)
+    side.close()
+    assert len(steps) < 2000
+    with pytest.raises(align_mod._Cancelled):
+        side.result()
+    assert not any(th.name.startswith("gridmerge-side") for th in threading.enumerate())
+    # Closing one that never started, or twice, does nothing.
+    align_mod._OtherSide(search).close()
+    side.close()
 
 
 def test_metric_transform_maps_points_between_map_frames(table1, table1_result):
