@@ -1,6 +1,8 @@
 import importlib
 import json
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -197,6 +199,34 @@ def test_a_search_no_longer_wanted_stops_at_its_next_costly_step():
     # Closing one that never started, or twice, does nothing.
     align_mod._OtherSide(search).close()
     side.close()
+
+
+@pytest.mark.parametrize("idle, starts", [(1.2, True), (0.2, False), (None, False)])
+def test_the_other_side_runs_alongside_only_on_a_core_that_stood_idle(idle, starts):
+    align_mod = importlib.import_module("gridmerge.align")
+
+    class Idle:
+        def cores(self):
+            return idle
+
+    side = align_mod._OtherSide(lambda event: "searched", idle=Idle())
+    side.start()
+    assert side.started == starts
+    if starts:
+        assert side.result() == "searched"
+    side.close()
+
+
+def test_idle_cores_are_measured_from_the_systems_cpu_times():
+    align_mod = importlib.import_module("gridmerge.align")
+    if align_mod._cpu_times() is None:
+        pytest.skip("the system does not say (not Linux)")
+    import time
+
+    idle = align_mod._IdleCores()
+    time.sleep(align_mod._IDLE_MIN_S + 0.2)
+    cores = idle.cores()
+    assert cores is not None and 0.0 <= cores <= (os.cpu_count() or 1) + 1e-9
 
 
 def test_metric_transform_maps_points_between_map_frames(table1, table1_result):
@@ -1262,9 +1292,11 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
     theirs = SimilarityTransform(translation=(shift, 0.0)) @ ours
     calls = []
 
-    def search(judge, fa, fb, second=None):
+    def search(judge, fa, fb, second=None, unsettled=None):
         calls.append(judge.a is a)
         if judge.a is a:
+            if unsettled is not None and 0.6 < (judge.opts.one_sided_confidence or 0.0):
+                unsettled()  # as the search does when its pose is unsure: b's side starts alongside
             return _one_side(ours, 0.6)
         if other_conf is None:
             return _one_side(None, 0.0)
@@ -1273,7 +1305,8 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
     monkeypatch.setattr(align_module, "_hybrid_search", search)
     opts = align_module.AlignOptions()
     fa = fb = Features.empty()
-    est = align_module._both_sides(a, b, fa, fb, opts, np.random.default_rng(0), None)
+    helper = ThreadPoolExecutor(max_workers=1)  # as align gives it with two cores
+    est = align_module._both_sides(a, b, fa, fb, opts, helper, None)
     assert calls == [True, False]
     if expect == "theirs":
         # b's side's pose, 5 px off the walls, then polished in a's frame (the frame its
@@ -1292,11 +1325,12 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
         assert ("no pose" in est.one_sided) == (other_conf is None)
     # Sure enough from one side, or asked to search from a's side only: one search.
     calls.clear()
-    assert align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=0.55), np.random.default_rng(0), None) is not None
+    assert align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=0.55), helper, None) is not None
     assert calls == [True]
     calls.clear()
-    est = align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=None), np.random.default_rng(0), None)
+    est = align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=None), helper, None)
     assert calls == [True] and not est.one_sided
+    helper.shutdown()
 
 
 @pytest.mark.parametrize("a_side", ["no fit", "a rival fit", "unsure"])
@@ -1313,7 +1347,7 @@ def test_a_sure_pose_of_the_second_side_is_taken_when_the_first_found_no_fit(mon
     far = SimilarityTransform(translation=(300.0, 40.0)) @ right
     ours, theirs, own = {"no fit": (far, right, 0.0), "a rival fit": (right, far, 0.3), "unsure": (far, right, 0.6)}[a_side]
 
-    def search(judge, fa, fb, second=None):
+    def search(judge, fa, fb, second=None, unsettled=None):
         judge.prepare()  # as the search does first
         if judge.a is a:
             return _one_side(ours, own)
@@ -1349,10 +1383,10 @@ def test_align_takes_the_surer_side_or_declines_a_one_sided_pose(monkeypatch, b_
     real = align_module._hybrid_search
     calls = []
 
-    def search(judge, fa, fb, second=None):
+    def search(judge, fa, fb, second=None, unsettled=None):
         calls.append(judge)
         if len(calls) == 1:  # a's side
-            est = real(judge, fa, fb)
+            est = real(judge, fa, fb, unsettled=unsettled)
             est.confidence = 0.7
             return est
         if b_side == "finds nothing":
