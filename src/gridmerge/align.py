@@ -92,7 +92,7 @@ from .features import FeatureExtractor, Features, GreyRenderer, SIFT
 from .grid import OccupancyGrid
 from .io.jsonable import finite
 from .matching import knn, match_nn, match_smnn, match_snn
-from .refine import LARGE_CELLS, WallICP, prepare_fields, refine_direct
+from .refine import WallICP, prepare_fields, refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 from .correlate import correlation_hypotheses, match_rotation, rotation_candidates
 from .verify import Verification, WallScorer, chance_wall_agreement, despeckle, verify
@@ -2352,8 +2352,10 @@ _WALL_LED_MIN_SHARED = 0.15
 _HOPELESS_SHARED = _WALL_LED_MIN_SHARED - 0.05
 #: Maps of at most this many cells (each) are searched from both sides at once
 #: (:class:`_OtherSide`); larger ones one side after the other, so that one side's
-#: fields and tables are let go before the other's are made.
-_SIDES_AT_ONCE_CELLS = LARGE_CELLS
+#: fields and tables are let go before the other's are made (a judge's refinement
+#: fields alone take about 50 bytes per cell: 200 MB at this size, a 2000 x 2000 map;
+#: the Halmstad maps have 2.5 million cells).
+_SIDES_AT_ONCE_CELLS = 4_000_000
 #: Idle cores (on average, while a's side searched) for the search from b's side to run
 #: alongside (:class:`_OtherSide`). With every core busy it only took turns with a's
 #: side, and its work was lost where a's side did not need it: two pytest workers on two
