@@ -1,8 +1,6 @@
 import importlib
 import json
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -151,82 +149,6 @@ def test_threads_change_nothing(monkeypatch, request, pair):
     np.testing.assert_array_equal(threaded.candidate.params, serial.candidate.params)
     assert (threaded.success, threaded.confidence, threaded.details) == (serial.success, serial.confidence, serial.details)
     assert threaded.verification == serial.verification
-    if pair == "different places":
-        # Declined from both sides: with two cores the search from b's side ran in a
-        # thread of its own alongside a's (_OtherSide); serially, after it.
-        assert "other_side" in threaded.details
-
-
-def test_a_search_no_longer_wanted_stops_at_its_next_costly_step():
-    import threading
-
-    align_mod = importlib.import_module("gridmerge.align")
-    a, b, truth = samples.robot_pair(1)
-    cancel = threading.Event()
-    judge = align_mod._Judge(a, b, gridmerge.AlignOptions(), cancel=cancel)
-    judge.prepare()
-    t = SimilarityTransform(truth)
-    assert judge.quick(t) > 0.5  # not cancelled: it works
-    cancel.set()
-    with pytest.raises(align_mod._Cancelled):
-        judge.quick(SimilarityTransform(translation=(5, 0)) @ t)  # a new pose: a costly step
-    with pytest.raises(align_mod._Cancelled):
-        judge._refined(t)
-    assert judge.quick(t) > 0.5  # what it knows it still answers
-
-    # The other side's search, in its thread, stops when cancelled, and the thread ends.
-    steps = []
-
-    def search(event):
-        j = align_mod._Judge(a, b, gridmerge.AlignOptions(), cancel=event)
-        for k in range(2000):
-            steps.append(k)
-            j.check()
-            threading.Event().wait(0.005)
-        return "ran to its end"
-
-    side = align_mod._OtherSide(search)
-    assert not side.started
-    side.start()
-    assert side.started
-    while not steps:
-        threading.Event().wait(0.005)
-    side.close()
-    assert len(steps) < 2000
-    with pytest.raises(align_mod._Cancelled):
-        side.result()
-    assert not any(th.name.startswith("gridmerge-side") for th in threading.enumerate())
-    # Closing one that never started, or twice, does nothing.
-    align_mod._OtherSide(search).close()
-    side.close()
-
-
-@pytest.mark.parametrize("idle, starts", [(1.2, True), (0.2, False), (None, False)])
-def test_the_other_side_runs_alongside_only_on_a_core_that_stood_idle(idle, starts):
-    align_mod = importlib.import_module("gridmerge.align")
-
-    class Idle:
-        def cores(self):
-            return idle
-
-    side = align_mod._OtherSide(lambda event: "searched", idle=Idle())
-    side.start()
-    assert side.started == starts
-    if starts:
-        assert side.result() == "searched"
-    side.close()
-
-
-def test_idle_cores_are_measured_from_the_systems_cpu_times():
-    align_mod = importlib.import_module("gridmerge.align")
-    if align_mod._cpu_times() is None:
-        pytest.skip("the system does not say (not Linux)")
-    import time
-
-    idle = align_mod._IdleCores()
-    time.sleep(align_mod._IDLE_MIN_S + 0.2)
-    cores = idle.cores()
-    assert cores is not None and 0.0 <= cores <= (os.cpu_count() or 1) + 1e-9
 
 
 def test_metric_transform_maps_points_between_map_frames(table1, table1_result):
@@ -1292,11 +1214,9 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
     theirs = SimilarityTransform(translation=(shift, 0.0)) @ ours
     calls = []
 
-    def search(judge, fa, fb, second=None, unsettled=None):
+    def search(judge, fa, fb, second=None):
         calls.append(judge.a is a)
         if judge.a is a:
-            if unsettled is not None and 0.6 < (judge.opts.one_sided_confidence or 0.0):
-                unsettled()  # as the search does when its pose is unsure: b's side starts alongside
             return _one_side(ours, 0.6)
         if other_conf is None:
             return _one_side(None, 0.0)
@@ -1305,8 +1225,7 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
     monkeypatch.setattr(align_module, "_hybrid_search", search)
     opts = align_module.AlignOptions()
     fa = fb = Features.empty()
-    helper = ThreadPoolExecutor(max_workers=1)  # as align gives it with two cores
-    est = align_module._both_sides(a, b, fa, fb, opts, helper, None)
+    est = align_module._both_sides(a, b, fa, fb, opts, np.random.default_rng(0), None)
     assert calls == [True, False]
     if expect == "theirs":
         # b's side's pose, 5 px off the walls, then polished in a's frame (the frame its
@@ -1325,12 +1244,11 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
         assert ("no pose" in est.one_sided) == (other_conf is None)
     # Sure enough from one side, or asked to search from a's side only: one search.
     calls.clear()
-    assert align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=0.55), helper, None) is not None
+    assert align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=0.55), np.random.default_rng(0), None) is not None
     assert calls == [True]
     calls.clear()
-    est = align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=None), helper, None)
+    est = align_module._both_sides(a, b, fa, fb, replace_opts(opts, one_sided_confidence=None), np.random.default_rng(0), None)
     assert calls == [True] and not est.one_sided
-    helper.shutdown()
 
 
 @pytest.mark.parametrize("a_side", ["no fit", "a rival fit", "unsure"])
@@ -1347,7 +1265,7 @@ def test_a_sure_pose_of_the_second_side_is_taken_when_the_first_found_no_fit(mon
     far = SimilarityTransform(translation=(300.0, 40.0)) @ right
     ours, theirs, own = {"no fit": (far, right, 0.0), "a rival fit": (right, far, 0.3), "unsure": (far, right, 0.6)}[a_side]
 
-    def search(judge, fa, fb, second=None, unsettled=None):
+    def search(judge, fa, fb, second=None):
         judge.prepare()  # as the search does first
         if judge.a is a:
             return _one_side(ours, own)
@@ -1383,10 +1301,10 @@ def test_align_takes_the_surer_side_or_declines_a_one_sided_pose(monkeypatch, b_
     real = align_module._hybrid_search
     calls = []
 
-    def search(judge, fa, fb, second=None, unsettled=None):
+    def search(judge, fa, fb, second=None):
         calls.append(judge)
         if len(calls) == 1:  # a's side
-            est = real(judge, fa, fb, unsettled=unsettled)
+            est = real(judge, fa, fb)
             est.confidence = 0.7
             return est
         if b_side == "finds nothing":

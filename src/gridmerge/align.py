@@ -75,7 +75,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import threading
 import time
 from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -729,19 +728,13 @@ class _SecondLook:
     ahead (:attr:`Features.blurred`, in the maps' pixels), or ``None``."""
 
     def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, known=(None, None), *,
-                 _found: list | None = None, _flip: bool = False, _lock: threading.Lock | None = None):
+                 _found: list | None = None, _flip: bool = False):
         self._a, self._b, self._opts, self._known = a, b, opts, known
         self._found = [] if _found is None else _found  # shared with the swapped view
         self._flip = _flip
-        self._lock = threading.Lock() if _lock is None else _lock  # the two sides may ask at once
-
 
     def features(self) -> tuple[Features, Features]:
         """``(a's, b's)`` blurred keypoints."""
-        with self._lock:
-            return self._features()
-
-    def _features(self) -> tuple[Features, Features]:
         if not self._found:
             ka, kb = self._known
             if ka is None and kb is None:
@@ -755,8 +748,7 @@ class _SecondLook:
 
     def swapped(self) -> "_SecondLook":
         """The same keypoints for the search from b's side."""
-        return _SecondLook(self._a, self._b, self._opts, self._known, _found=self._found, _flip=not self._flip,
-                           _lock=self._lock)
+        return _SecondLook(self._a, self._b, self._opts, self._known, _found=self._found, _flip=not self._flip)
 
 
 #: The most keypoints the second look keeps per map (the strongest), and the most pixels
@@ -865,10 +857,8 @@ class _Judge:
     with ``memory`` a second search of the same maps: :class:`_SearchMemory`)."""
 
     def __init__(self, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions, *,
-                 pool: ThreadPoolExecutor | None = None, memory: _SearchMemory | None = None,
-                 cancel: threading.Event | None = None):
+                 pool: ThreadPoolExecutor | None = None, memory: _SearchMemory | None = None):
         self.a, self.b, self.opts = a, b, opts
-        self.cancel = cancel  # set: the search is no longer wanted (_Cancelled at the next step)
         self.memory = memory = _SearchMemory() if memory is None else memory
         self.pool = pool  # a helper thread, or None
         self._scorer: Future | None = None
@@ -894,16 +884,9 @@ class _Judge:
         self._scorer = self._fields = None
         self._icp = None
 
-    def check(self) -> None:
-        """Raise :class:`_Cancelled` when the search this judge serves is no longer
-        wanted (:class:`_OtherSide`); called before each costly step."""
-        if self.cancel is not None and self.cancel.is_set():
-            raise _Cancelled
-
     def correlations(self, **kwargs) -> list:
         """:func:`gridmerge.correlate.correlation_hypotheses` of the maps with ``kwargs``,
         each rotation's peaks computed once (the memory keeps them)."""
-        self.check()
         return correlation_hypotheses(self.a, self.b, cache=self.memory.correlations, **kwargs)
 
     def _later(self, fn, *args) -> Future:
@@ -960,7 +943,6 @@ class _Judge:
     def _score(self, t: AffineTransform) -> tuple[float, float, float, float]:
         k = self._key(t)
         if k not in self._quick:
-            self.check()
             q = self.scorer(t)
             support = min(1.0, q.walls_compared / _MIN_WALLS_COMPARED) * min(1.0, q.shared / _MIN_SHARED)
             weight = support * min(1.0, q.shared) ** 0.25
@@ -975,7 +957,6 @@ class _Judge:
         max_shift = _REFINE_REACH if max_shift is None else max_shift
         k = (self._key(t), max_shift)
         if k not in self._refinements:
-            self.check()
             refined, report = refine_direct(self.a, self.b, t, cache=self.fields, max_shift=max_shift,
                                             scale_prior=scale_prior(self.a, self.b, t, self.opts), reference="finer")
             self._refinements[k] = refined if report.accepted else t
@@ -1019,7 +1000,6 @@ class _Judge:
             return None
         k = self._key(t)
         if k not in self._polished:
-            self.check()
             self._polished[k] = self.wall_icp().polish(SimilarityTransform(t.params))
         return self._polished[k]
 
@@ -1053,7 +1033,6 @@ class _Judge:
     def _verify(self, t: AffineTransform) -> Verification:
         k = self._key(t)
         if k not in self._verified:
-            self.check()
             self._verified[k] = verify(self.a, self.b, t, tolerance=self.opts.wall_tolerance)
         return self._verified[k]
 
@@ -1326,35 +1305,20 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
     memory = _PairMemory() if memory is None else memory
     judge = _Judge(a, b, opts, pool=pool, memory=memory.side(False))
     second = _SecondLook(a, b, opts, (fa.blurred, fb.blurred)) if opts.second_look > 0 else None
+    forward = _hybrid_search(judge, fa, fb, second)
     tau = opts.one_sided_confidence
-    ahead = None
-    if tau is not None and pool is not None and max(a.data.size, b.data.size) <= _SIDES_AT_ONCE_CELLS:
-        ahead = _OtherSide(lambda cancel: _hybrid_search(
-            _Judge(b, a, opts, memory=memory.side(True), cancel=cancel), fb, fa, None if second is None else second.swapped()),
-            idle=_IdleCores())
-    try:
-        forward = _hybrid_search(judge, fa, fb, second, unsettled=None if ahead is None else ahead.start)
-        own = forward.confidence or 0.0
-        settled = tau is None or forward.transform is None or own >= tau
+    own = forward.confidence or 0.0
+    if tau is None or forward.transform is None or own >= tau:
+        return _finished(forward, judge, reverse=False)
+    if own < opts.min_confidence and judge.shared(forward.transform) < _HOPELESS_SHARED:
         # Declined, and sharing too little for the same merge found from b's side to be
         # taken (most pairs of a fleet, which do not overlap): not sought again.
-        hopeless = not settled and own < opts.min_confidence and judge.shared(forward.transform) < _HOPELESS_SHARED
-        reverse = None
-        if not (settled or hopeless) and ahead is not None and ahead.started:
-            reverse = ahead.result()
-    finally:
-        if ahead is not None:
-            ahead.close()  # not wanted (or done): it stops at its next step
-    if settled:
-        return _finished(forward, judge, reverse=False)
-    if hopeless:
         return forward
-    # The first search's tools are let go (two maps' worth of fields and tables) before
-    # the search from b's side, with a memory of its own, runs when it has not already.
+    # From b's side, with a memory of its own; the first search's tools are let go
+    # first (two maps' worth of fields and tables).
     judge.release()
-    if reverse is None:
-        reverse = _hybrid_search(_Judge(b, a, opts, pool=pool, memory=memory.side(True)), fb, fa,
-                                 None if second is None else second.swapped())
+    reverse = _hybrid_search(_Judge(b, a, opts, pool=pool, memory=memory.side(True)), fb, fa,
+                             None if second is None else second.swapped())
     other = reverse.confidence or 0.0
     back = None if reverse.transform is None else reverse.transform.inverse
     moved = math.inf if back is None else judge.moved(forward.transform, back)
@@ -1404,105 +1368,6 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
     forward.one_sided = (f"declined: found from one map's side only (from the other's the search finds {where}); "
                          f"a one-sided pose needs confidence {tau:g} (has {own:.2f})")
     return forward
-
-
-class _Cancelled(Exception):
-    """A search that is no longer wanted stops (:meth:`_Judge.check`)."""
-
-
-class _OtherSide:
-    """The search from b's side, run in a thread of its own while a's side searches on,
-    from the moment a's side's overlap-seeking stage leaves its pose below
-    ``one_sided_confidence`` (:func:`_both_sides`): the two searches share the cores
-    instead of taking turns (one side's search keeps about 1.4 of two cores busy). A
-    pose a's side settles earlier (the keypoints, or the overlap-seeking stage, sure
-    enough) starts nothing: those pairs run as fast as before. Its result is the one
-    the search would give run after a's side: it has a judge and a memory of its own
-    and draws nothing at random (``tests/test_align.py``, ``test_threads_change_nothing``).
-    When a's side turns out not to need it, it is cancelled, and stops at its next
-    costly step (:meth:`_Judge.check`). It starts only when a core stood idle while a's
-    side searched (``idle``, :class:`_IdleCores`): on a machine whose cores other
-    processes keep busy (pytest workers, a fleet's worker processes) the two sides take
-    turns as before.
-
-    ``search(cancel)`` runs the search with the judge watching the event ``cancel``."""
-
-    def __init__(self, search: Callable[[threading.Event], Estimate], idle: "_IdleCores | None" = None):
-        self._search = search
-        self._idle = idle
-        self._cancel = threading.Event()
-        self._pool: ThreadPoolExecutor | None = None
-        self._future: Future | None = None
-
-    @property
-    def started(self) -> bool:
-        return self._future is not None
-
-    def start(self) -> None:
-        """Start the search, unless ``idle`` says that fewer than :data:`_SPARE_CORE`
-        cores stood idle since a's side began (other processes, or this one's, keep
-        them busy: the search would only take turns with a's side, and its work is
-        lost when a's side does not need it) or cannot say."""
-        if self._idle is not None and not (self._idle.cores() or 0.0) >= _SPARE_CORE:
-            return
-        if self._future is None:
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gridmerge-side")
-            self._future = self._pool.submit(self._run)
-
-    def _run(self) -> Estimate:
-        return self._search(self._cancel)
-
-    def result(self) -> Estimate:
-        return self._future.result()
-
-    def close(self) -> None:
-        """Cancel the search unless it has ended, and wait for its thread to end."""
-        if self._pool is None:
-            return
-        self._cancel.set()
-        self._pool.shutdown(wait=True)
-        self._pool = None
-
-
-class _IdleCores:
-    """How many cores stood idle, on average, since it was made (the system's CPU
-    times, Linux's ``/proc/stat``); ``cores()`` is ``None`` where the system does not
-    say, or too little time has passed to tell."""
-
-    def __init__(self):
-        self._start = _cpu_times()
-
-    def cores(self) -> float | None:
-        now = _cpu_times()
-        if now is None or self._start is None:
-            return None
-        cores = os.cpu_count() or 1
-        total, idle = now[0] - self._start[0], now[1] - self._start[1]
-        if total <= 0 or total < _IDLE_MIN_S * _clock_ticks() * cores:
-            return None
-        return cores * idle / total
-
-
-def _clock_ticks() -> int:
-    """Clock ticks a second (of ``/proc/stat``)."""
-    try:
-        return int(os.sysconf("SC_CLK_TCK"))
-    except (AttributeError, ValueError, OSError):  # pragma: no cover - not a POSIX system
-        return 100
-
-
-def _cpu_times() -> tuple[int, int] | None:
-    """``(all, idle)``: the system's CPU time so far in clock ticks (Linux), summed over
-    its cores; ``None`` elsewhere."""
-    try:
-        with open("/proc/stat", "rb") as f:
-            fields = f.readline().split()
-    except OSError:
-        return None
-    if len(fields) < 5 or fields[0] != b"cpu":
-        return None
-    ticks = [int(v) for v in fields[1:9]]  # user nice system idle iowait irq softirq steal
-    return sum(ticks), ticks[3] + (ticks[4] if len(ticks) > 4 else 0)
 
 
 def _other_side_taken(forward: Estimate, reverse: Estimate, back, judge: _Judge, note: dict, **first_side) -> Estimate:
@@ -1649,13 +1514,9 @@ def _polished_across(est: Estimate, judge: _Judge, *, reverse: bool) -> Estimate
     return replace(est, transform=pose, verification=verification, details=details)
 
 
-def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLook | None" = None,
-                   unsettled: Callable[[], None] | None = None) -> Estimate:
+def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLook | None" = None) -> Estimate:
     """One side's search (a is the reference); ``second`` gives the maps' blurred
-    keypoints (:attr:`AlignOptions.second_look`) when the keypoints do not settle the pose;
-    ``unsettled`` is called when the overlap-seeking stage leaves the pose below
-    ``one_sided_confidence`` (the search from the other side will be wanted unless the
-    wall-led stage finds a surer pose)."""
+    keypoints (:attr:`AlignOptions.second_look`) when the keypoints do not settle the pose."""
     a, b, opts = judge.a, judge.b, judge.opts
     judge.prepare()
     hyps, src, dst, pairs, votes = _keypoint_hypotheses(fa, fb, opts)
@@ -1738,8 +1599,6 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
                 candidates = candidates + [(beyond, f"{kind} (polished beyond reach)")]
                 wall, best, kind, runner_up, v = judge.decide(candidates)
                 ratio, confidence = _judged(wall, runner_up, v)
-    if unsettled is not None and confidence < (opts.one_sided_confidence or 0.0):
-        unsettled()
     if confidence < opts.min_confidence and opts.wall_led:
         # Then the wall-led correlation, which finds the right pose far more often when
         # the maps share little, but also poses that agree by chance on a small part:
@@ -2350,19 +2209,6 @@ _WALL_LED_MIN_SHARED = 0.15
 #: declined pose sharing less is not sought again from b's side, nor with coarser
 #: keypoints (:attr:`AlignOptions.coarse_look`).
 _HOPELESS_SHARED = _WALL_LED_MIN_SHARED - 0.05
-#: Maps of at most this many cells (each) are searched from both sides at once
-#: (:class:`_OtherSide`); larger ones one side after the other, so that one side's
-#: fields and tables are let go before the other's are made (a judge's refinement
-#: fields alone take about 50 bytes per cell: 200 MB at this size, a 2000 x 2000 map;
-#: the Halmstad maps have 2.5 million cells).
-_SIDES_AT_ONCE_CELLS = 4_000_000
-#: Idle cores (on average, while a's side searched) for the search from b's side to run
-#: alongside (:class:`_OtherSide`). With every core busy it only took turns with a's
-#: side, and its work was lost where a's side did not need it: two pytest workers on two
-#: cores ran 29 tests of real maps 10 % slower (208 s against 189 s, CPU time 11 % more).
-_SPARE_CORE = 0.5
-#: Seconds before an idle share counts (:class:`_IdleCores`).
-_IDLE_MIN_S = 0.5
 #: ... and no clearly different pose may score above this share of its score.
 _WALL_LED_RATIO = 0.8
 #: The wall-led search's pose is also taken, with less wall agreement, when no clearly
