@@ -1368,7 +1368,7 @@ def test_a_pose_from_the_second_side_alone_needs_walls_enough(shared_data):
     source seen by both): from the larger map's side the best pose agrees on 23 % of its
     walls; from the other side a pose 194 px away agrees on 89 %, but over 22 and 11 wall
     cells, and is 24.6 px from the truth. A pose that overrules the first side's search
-    must hold at least 40 wall cells of each map in the overlap; this one is declined."""
+    must hold at least 40 wall cells of the two maps in the overlap; this one is declined."""
     from gridmerge.bench import datasets
 
     case = datasets.simulated(n=60, seed=22, data_dir=shared_data)[12]
