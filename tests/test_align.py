@@ -1363,6 +1363,23 @@ def test_a_pose_found_only_from_the_second_side_is_taken_when_the_first_finds_no
 
 
 @pytest.mark.shared
+def test_a_pose_from_the_second_side_alone_needs_walls_enough(shared_data):
+    """Fresh simulated seed 22, pair 12 (two robots in Halmstad, 16 wall cells of the
+    source seen by both): from the larger map's side the best pose agrees on 23 % of its
+    walls; from the other side a pose 194 px away agrees on 89 %, but over 22 and 11 wall
+    cells, and is 24.6 px from the truth. A pose that overrules the first side's search
+    must hold at least 40 wall cells of the two maps in the overlap; this one is declined."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=22, data_dir=shared_data)[12]
+    r = align(case.a, case.b, rng=0)
+    assert not r.success
+    side = r.details["other_side"]
+    assert side["confidence"] >= 0.8 and not side["same_pose"] and not side.get("taken")
+    assert "first_side" not in r.details
+
+
+@pytest.mark.shared
 def test_two_buildings_fit_from_one_side_only_are_declined(shared_data):
     """HIH_04 - E5_12: the apartment laid into the office's open space at confidence 0.75
     from the apartment's side; from the office's side the best pose lies over 200 px away.

@@ -228,7 +228,8 @@ class AlignOptions:
         other side finds another pose at this confidence or more, that pose is taken if
         it clearly beats the first side's best (walls agreeing on at least twice the
         share, counted in the first side's frame): the first side found no fit at all,
-        not a rival fit (docs/benchmarks.md, thirty-third session).
+        not a rival fit (docs/benchmarks.md, thirty-third session); and if its overlap
+        holds at least 40 wall cells of the two maps (thirty-ninth session).
         ``None`` searches from the reference's side only: pairs below this take half the
         time. CLI
         ``--one-sided-confidence``.
@@ -1294,8 +1295,9 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng, memory: _PairMemory 
 def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | None = None) -> Estimate:
     """The search from a's side; below ``opts.one_sided_confidence``, judged with the
     search from b's side as well (:attr:`AlignOptions.one_sided_confidence`). A's side
-    declined, b's side's pose is taken when b's side would take it alone and it clearly
-    beats a's side's best.
+    declined, b's side's pose is taken when b's side would take it alone, it clearly
+    beats a's side's best and its overlap holds walls enough (``_MIN_WALLS_COMPARED``
+    of the two maps together).
 
     ``details["other_side"]`` describes the search from b's side: its ``confidence``,
     how far its pose moves the shared part (``moved_px``), its ``source``, whether it is
@@ -1358,9 +1360,16 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         # (walls 70 %), E5_01's best pose agreeing on 44 %; E5_09's on 52 % against 61 %.
         # The simulated positives so taken agreed on 80-97 %, a's side's best on 9-18 %
         # (docs/benchmarks.md, thirty-third session). Every decline rule still applies.
+        # The pose overrules a's side's search, so it must rest on walls enough for the
+        # scorer to count a pose fully (_MIN_WALLS_COMPARED wall cells of both maps in
+        # the overlap): fresh simulated seed 22, pair 12 (16 wall cells of the source
+        # seen by both) was merged 24.6 px off at 1.0 on 22 + 11 wall cells; seed 5's
+        # pair 51 is merged rightly (2.6 px) by the coarser look on 31 + 99 (thirty-ninth
+        # session; 40 of *each* map lost it).
         first = forward.verification or judge._verify(forward.transform)
         theirs = judge._verify(back)
-        if _full_wall(first) <= _CLEAR_RATIO * _full_wall(theirs):
+        enough = theirs.walls_a + theirs.walls_b >= _MIN_WALLS_COMPARED
+        if enough and _full_wall(first) <= _CLEAR_RATIO * _full_wall(theirs):
             return _other_side_taken(forward, reverse, back, judge, {**note, "same_pose": False},
                                      wall_agreement=round(_full_wall(first), 4))
     forward.details["other_side"] = {**note, "same_pose": False}
