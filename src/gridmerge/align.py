@@ -1361,11 +1361,12 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         # The simulated positives so taken agreed on 80-97 %, a's side's best on 9-18 %
         # (docs/benchmarks.md, thirty-third session). Every decline rule still applies.
         # The pose overrules a's side's search, so it must rest on walls enough for the
-        # scorer to count a pose fully (_MIN_WALLS_COMPARED wall cells of both maps in
-        # the overlap): fresh simulated seed 22, pair 12 (16 wall cells of the source
-        # seen by both) was merged 24.6 px off at 1.0 on 22 + 11 wall cells; seed 5's
-        # pair 51 is merged rightly (2.6 px) by the coarser look on 31 + 99 (thirty-ninth
-        # session; 40 of *each* map lost it).
+        # scorer to count a pose fully (_MIN_WALLS_COMPARED wall cells of the two maps
+        # together in the overlap, as the scorer's walls_compared sums them): fresh
+        # simulated seed 22, pair 12 (16 wall cells of the source seen by both) was
+        # merged 24.6 px off at 1.0 on 22 + 11 wall cells; seed 5's pair 51 is merged
+        # rightly (2.6 px) by the coarser look on 31 + 99 (thirty-ninth session; 40 of
+        # *each* map lost it).
         first = forward.verification or judge._verify(forward.transform)
         theirs = judge._verify(back)
         enough = theirs.walls_a + theirs.walls_b >= _MIN_WALLS_COMPARED
@@ -2269,8 +2270,10 @@ _FINISH_WALLS = 0.5
 #: pixels): a finishing touch, not a new pose (unbounded, it moved right poses of E5's
 #: bent Tango maps 5-10 px to where one part's walls coincide, and made them wrong).
 _FINISH_REACH = 3.0
-#: Wall cells (both maps, as sampled by the scorer) a candidate must compare for its quick
-#: score to count fully.
+#: Wall cells (the two maps together, as sampled by the scorer) a candidate must compare
+#: for its quick score to count fully; also the floor (the two maps' wall cells in the
+#: overlap, counted in full) of a pose taken from the second map's side alone
+#: (:func:`_both_sides`).
 _MIN_WALLS_COMPARED = 40
 #: ... and share of the smaller map it must overlap.
 _MIN_SHARED = 0.05
