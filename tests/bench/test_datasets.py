@@ -459,3 +459,77 @@ def test_swapped_cases_align_a_onto_b(tmp_path):
     assert datasets.load("paper-swapped")[0].id == "paper-swapped/table1-seed0"
     with pytest.raises(GridMergeError):
         datasets.load("nothing-swapped")
+
+
+# ------------------------------------------------------------ user's source maps
+@pytest.fixture(scope="module")
+def map_files(tmp_path_factory):
+    """Two procedural buildings saved as map_server maps (YAML + PGM) and as a PNG."""
+    from gridmerge import save_map
+    from gridmerge import samples
+
+    folder = tmp_path_factory.mktemp("source_maps")
+    one = save_map(samples.building(11, (360, 480)), folder / "one.yaml")
+    two = folder / "two.png"
+    cv2.imwrite(str(two), samples.building(12, (380, 460)).render(unknown=205))
+    return one, two
+
+
+def test_simulated_in_the_users_maps(map_files):
+    """Every case is drawn from the maps given (nothing else), positives of one map,
+    negatives of two different places from both; the run names the maps and digests."""
+    one, two = map_files
+    ds = datasets.simulated(n=10, seed=2, negatives=0.4, source_maps=[one, str(two), one])
+    names = {"file:" + str(one.resolve()), "file:" + str(two.resolve())}
+    cases = list(ds)
+    assert {c.meta["source"] for c in cases} == names
+    assert [m["path"] for m in ds.params["source_maps"]] == [str(one.resolve()), str(two.resolve())]  # duplicates dropped
+    digests = [m["cells_sha256"] for m in ds.params["source_maps"]]
+    assert len(set(digests)) == 2 and all(len(d) == 64 for d in digests)
+    negatives = [c for c in cases if not c.positive]
+    assert len(negatives) == 4
+    for c in negatives:
+        if c.meta["negative_kind"] == "different-places":
+            assert c.meta["source_b"] != c.meta["source"] and c.meta["source_b"] in names
+    for c in cases:
+        if c.positive:
+            assert c.truth is not None and c.meta["shared_walls"] > 0
+    # The same seed gives the same cases; the source maps are read as source_map reads them.
+    again = list(datasets.simulated(n=10, seed=2, negatives=0.4, source_maps=[one, two]))
+    assert all(_same(c1, c2) for c1, c2 in zip(cases, again))
+    from gridmerge import load_map
+
+    assert datasets.source_map("file:" + str(one.resolve())) == load_map(one).crop_known(8)[0]
+
+
+def test_one_source_map_gives_negatives_of_distant_parts(tmp_path):
+    from gridmerge import save_map
+    from gridmerge import samples
+
+    one = save_map(samples.building(13, (560, 760)), tmp_path / "large.yaml")
+    cases = list(datasets.simulated(n=6, seed=5, negatives=0.5, source_maps=[one]))
+    kinds = {c.meta["negative_kind"] for c in cases if not c.positive}
+    assert kinds == {"distant-parts"}
+    assert all(c.meta["overlap"] == 0.0 for c in cases if not c.positive)
+
+
+def test_bad_source_maps_are_one_line_errors(map_files, tmp_path):
+    with pytest.raises(GridMergeError, match="source map not found: .*nope.yaml"):
+        datasets.simulated(n=2, source_maps=[tmp_path / "nope.yaml"])
+    with pytest.raises(GridMergeError, match="no source map given"):
+        datasets.simulated(n=2, source_maps=[])
+    walls = tmp_path / "walls.png"
+    cv2.imwrite(str(walls), np.zeros((50, 60), np.uint8))  # all occupied: nowhere to stand
+    with pytest.raises(GridMergeError, match="no free space for a robot"):
+        datasets.simulated(n=2, source_maps=[walls])
+    unknown = tmp_path / "unknown.png"
+    cv2.imwrite(str(unknown), np.full((50, 60), 205, np.uint8))
+    with pytest.raises(GridMergeError, match="no known cells"):
+        datasets.simulated(n=2, source_maps=[unknown])
+    tiny = tmp_path / "tiny.png"
+    img = np.zeros((60, 60), np.uint8)
+    img[5:55, 5:55] = 254
+    cv2.imwrite(str(tiny), img)  # one room: no two parts of it are apart
+    ds = datasets.simulated(n=2, negatives=0.5, source_maps=[tiny])
+    with pytest.raises(GridMergeError, match="too small for a negative pair"):
+        ds[1]

@@ -56,3 +56,17 @@ def test_real_fleets_are_every_environment_of_the_folder_smallest_first(tmp_path
     assert _halmstad_fleets(tmp_path) == ["SMALL", "AA", "BIG"]
     (tmp_path / "other").mkdir()
     assert _halmstad_fleets(tmp_path / "other") == []  # a data folder without Halmstad maps
+
+
+def test_bench_fleet_in_a_map_file(tmp_path, capsys):
+    """``--source`` takes a map file as well as a source map's name."""
+    from gridmerge import save_map, samples
+
+    path = save_map(samples.building(5, (400, 500)), tmp_path / "office.yaml")
+    out = tmp_path / "fleet"
+    code = main(["bench", "fleet", "--robots", "2", "--workers", "1", "--no-halmstad", "--source", str(path), "--out", str(out)])
+    assert code == 0
+    d = json.loads((out / "fleet.json").read_text())
+    assert d["rows"][0]["robots"] == 2 and d["rows"][0]["placed"] == 2
+    assert str(path.resolve()) in json.dumps(d)
+    assert main(["bench", "fleet", "--robots", "2", "--source", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "x")]) == 2

@@ -311,3 +311,35 @@ def test_cli_decline_thresholds(tmp_path):
                          "--min-confidence", "0.7"])
     assert cli_bench.run(args) == 0
     assert json.loads((out / "config.json").read_text())["options"] == {"min_confidence": 0.7}
+
+
+def test_cli_simulates_the_robots_in_the_users_maps(tmp_path, capsys):
+    """``--source-map`` (repeatable) makes the simulated pairs of those maps; the run
+    names them; a missing file or a data set that does not simulate is one line."""
+    import cv2
+
+    from gridmerge import save_map, samples
+    from gridmerge.cli.main import main
+
+    one = save_map(samples.building(21, (360, 480)), tmp_path / "one.yaml")
+    two = tmp_path / "two.png"
+    cv2.imwrite(str(two), samples.building(22, (360, 480)).render(unknown=205))
+    out = tmp_path / "run"
+    code = main(["bench", "--dataset", "simulated", "--n", "2", "--methods", "orb", "--no-plots", "--no-memory",
+                 "--source-map", str(one), "--source-map", str(two), "--out", str(out)])
+    assert code == 0
+    capsys.readouterr()
+    config = json.loads((out / "config.json").read_text())
+    (sim,) = config["datasets"]
+    assert [m["path"] for m in sim["params"]["source_maps"]] == [str(one.resolve()), str(two.resolve())]
+    cases = [json.loads(line) for line in (out / "cases.jsonl").read_text().splitlines()]
+    assert len(cases) == 2 and {c["source"] for c in cases} <= {"file:" + str(one.resolve()), "file:" + str(two.resolve())}
+    assert "source maps one.yaml two.png" in (out / "results.md").read_text()
+    for args, message in (
+        (["--dataset", "simulated", "--source-map", str(tmp_path / "nope.yaml")], "source map not found"),
+        (["--dataset", "paper", "--source-map", str(one)], "for the simulated data set only"),
+    ):
+        code = main(["bench", *args, "--n", "1", "--methods", "orb", "--no-plots", "--out", str(tmp_path / "bad")])
+        err = capsys.readouterr().err
+        assert code not in (0, 1) and message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+        assert not (tmp_path / "bad" / "cases.jsonl").exists()

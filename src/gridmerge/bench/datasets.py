@@ -33,8 +33,10 @@ Examples
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -256,12 +258,33 @@ def source_names(data_dir=None) -> list:
     return names
 
 
+#: Prefix of a source map given by its file (:func:`file_source`).
+FILE_PREFIX = "file:"
+
+
+def file_source(path) -> str:
+    """The source name of a map file (``"file:"`` + its absolute path), for
+    :func:`simulated`'s ``source_maps``, :func:`source_map` and the fleet benchmark.
+
+    Raises
+    ------
+    GridMergeError
+        The file does not exist.
+    """
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise GridMergeError(f"source map not found: {path}")
+    return FILE_PREFIX + str(p.resolve())
+
+
 def source_map(name: str, data_dir=None) -> OccupancyGrid:
     """A source map of :func:`simulated` by name.
 
     ``"willow"`` (the Willow Garage SLAM map), ``"halmstad:E5_03"`` (a Halmstad sensor
     map, cut to its known cells plus 8 cells), ``"building:SEED:HxW"`` (a procedural
-    building, :func:`gridmerge.samples.building`).
+    building, :func:`gridmerge.samples.building`), ``"file:PATH"`` (any map
+    :func:`gridmerge.load_map` reads, cut to its known cells plus 8 cells; see
+    :func:`file_source`).
     """
     d = resolve_data_dir(data_dir)
     return _source_map(name, None if d is None else str(d))
@@ -273,6 +296,11 @@ def _source_map(name: str, data_dir: Optional[str]) -> OccupancyGrid:
         _, seed, shape = name.split(":")
         h, w = (int(v) for v in shape.split("x"))
         return samples.building(int(seed), (h, w))
+    if name.startswith(FILE_PREFIX):
+        g = load_map(name[len(FILE_PREFIX):])
+        if not g.known.any():
+            raise GridMergeError(f"source map {name[len(FILE_PREFIX):]} has no known cells")
+        return g.crop_known(8)[0]
     if data_dir is None:
         raise GridMergeError(f"source map {name!r} needs the shared data folder")
     d = Path(data_dir)
@@ -654,6 +682,10 @@ def _split_views(world: _World, vps: np.ndarray, rng: np.random.Generator, targe
 
 
 def _pick_source(rng: np.random.Generator, available: list, building_shapes, exclude: str = "") -> str:
+    files = [s for s in available if s.startswith(FILE_PREFIX)]
+    if files:  # maps given by the user: drawn evenly, nothing else
+        others = [s for s in files if s != exclude] or files
+        return others[int(rng.integers(len(others)))]
     kinds = [k for k in ("willow", "halmstad", "building") if any(s == k or s.startswith(k + ":") for s in available)]
     weights = {"willow": 0.3, "halmstad": 0.3, "building": 0.4}
     for _ in range(20):
@@ -686,6 +718,7 @@ def simulated(
     negatives: float = 0.2,
     building_shapes: Sequence[Sequence[int]] = ((560, 760), (720, 960)),
     see_through: int = SEE_THROUGH,
+    source_maps: Optional[Sequence] = None,
 ) -> Dataset:
     """Simulated robot pairs with exact ground truth.
 
@@ -728,6 +761,13 @@ def simulated(
         Unknown cells of a source map a scanner ray crosses (:data:`SEE_THROUGH`; 0
         rebuilds the set as it was until 2026-11-30). Procedural buildings have no
         unknown cells: their cases are the same whatever the value.
+    source_maps : sequence of path, optional
+        Map files (anything :func:`gridmerge.load_map` reads: a map_server YAML, a PGM or
+        PNG image) to simulate the robots in, instead of the shared data and the
+        procedural buildings: each case draws one of them evenly (a negative pair of two
+        different places, two of them; with a single map, every negative pair is two
+        distant parts of it). ``sources`` is then ignored. Their paths and SHA-256 digests
+        are recorded in ``params["source_maps"]``, so that a run names the maps it used.
 
     Returns
     -------
@@ -749,22 +789,29 @@ def simulated(
     see_through = int(see_through)
     if see_through < 0:
         raise GridMergeError(f"see_through must be >= 0, got {see_through}")
-    d = resolve_data_dir(data_dir)
-    shared = source_names(d) if d is not None else []
-    wanted = set(sources) if sources is not None else {"building", "willow", "halmstad"}
-    unknown = wanted - {"building", "willow", "halmstad"}
-    if unknown:
-        raise GridMergeError(f"unknown source kinds {sorted(unknown)} (use building, willow, halmstad)")
-    available = [s for s in shared if s.split(":")[0] in wanted]
-    if "building" in wanted:
-        available.append("building")
-    notes = []
-    if d is None:
-        notes.append(f"shared data not found at {default_data_dir()}: simulated cases use procedural buildings only")
-        available = ["building"]
-    elif not available:
-        raise GridMergeError(f"no source maps of kinds {sorted(wanted)} in {d}")
-    data_key = None if d is None else str(d)
+    params: dict = {"see_through": see_through}
+    notes: list = []
+    if source_maps is not None:
+        available = _check_source_maps(source_maps, see_through)
+        params["source_maps"] = [{"path": s[len(FILE_PREFIX):], "cells_sha256": _cells_digest(_source_map(s, None))}
+                                 for s in available]
+        data_key = None
+    else:
+        d = resolve_data_dir(data_dir)
+        shared = source_names(d) if d is not None else []
+        wanted = set(sources) if sources is not None else {"building", "willow", "halmstad"}
+        unknown = wanted - {"building", "willow", "halmstad"}
+        if unknown:
+            raise GridMergeError(f"unknown source kinds {sorted(unknown)} (use building, willow, halmstad)")
+        available = [s for s in shared if s.split(":")[0] in wanted]
+        if "building" in wanted:
+            available.append("building")
+        if d is None:
+            notes.append(f"shared data not found at {default_data_dir()}: simulated cases use procedural buildings only")
+            available = ["building"]
+        elif not available:
+            raise GridMergeError(f"no source maps of kinds {sorted(wanted)} in {d}")
+        data_key = None if d is None else str(d)
     shapes = [tuple(int(v) for v in s) for s in building_shapes]
 
     def is_negative(k: int) -> bool:
@@ -781,7 +828,28 @@ def simulated(
         case.meta["see_through"] = see_through
         return case
 
-    return Dataset("simulated", n, build, notes, {"see_through": see_through})
+    return Dataset("simulated", n, build, notes, params)
+
+
+def _check_source_maps(paths, see_through: int) -> list:
+    """Source names of the map files ``paths`` (duplicates dropped), each read and found
+    to hold free space where a robot fits; a bad one raises :class:`GridMergeError`."""
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
+    names = list(dict.fromkeys(file_source(p) for p in paths))
+    if not names:
+        raise GridMergeError("no source map given: give at least one map file")
+    for name in names:
+        _World(_source_map(name, None), name[len(FILE_PREFIX):], see_through)  # raises if no robot fits
+    return names
+
+
+def _cells_digest(grid: OccupancyGrid) -> str:
+    """SHA-256 of a map's cells as simulated (shape, resolution and values), whatever its
+    file format: two runs that name the same digest drew from the same map."""
+    h = hashlib.sha256(f"{grid.shape[0]}x{grid.shape[1]}@{grid.resolution!r}:".encode())
+    h.update(np.ascontiguousarray(grid.data, dtype=np.float32).tobytes())
+    return h.hexdigest()
 
 
 def _world(name: str, data_key: Optional[str], see_through: int) -> _World:
@@ -835,7 +903,11 @@ def _negative_case(k: int, rng, available, data_key, shapes, see_through: int) -
     world._views.clear()
     vps = world.viewpoints(rng)
     kind = "distant-parts" if rng.random() < 0.5 else "different-places"
-    split = _split_views(world, vps, rng, 0.0, (0.0, 0.0), negative=True) if kind == "distant-parts" else None
+    alone = [s for s in available if s.startswith(FILE_PREFIX)] == [name]  # no other place to draw
+    split = _split_views(world, vps, rng, 0.0, (0.0, 0.0), negative=True) if kind == "distant-parts" or alone else None
+    if split is None and alone:
+        raise GridMergeError(f"source map {name[len(FILE_PREFIX):]} is too small for a negative pair of two distant "
+                             "parts; give two maps or more")
     meta: dict = {"tier": "negative", "source": name, "rotation_deg": rot, "scale": scale, "noise": tier.noise, "range_px": RANGE_PX}
     if split is not None:
         va, vb, _, phi = split
@@ -1109,7 +1181,8 @@ def paper(seeds: Sequence[int] = (0,)) -> Dataset:
 
 
 # ----------------------------------------------------------------------- load
-def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = False, data_dir=None) -> Dataset:
+def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = False, data_dir=None,
+         source_maps: Optional[Sequence] = None) -> Dataset:
     """A data set by name, with the benchmark's default sizes.
 
     ``simulated``: ``n`` cases (default 60; 6 with ``quick``); ``halmstad``: every
@@ -1118,7 +1191,9 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     ``n`` of each kind and environment; ``halmstad:ENV`` or ``halmstad:ENV+ENV...``: the
     same with these environments only; ``paper``: seeds 0-4 (seed 0 with ``quick``);
     any of them followed by ``-swapped`` (``halmstad-swapped``): its cases with the two
-    maps swapped (:func:`swapped`).
+    maps swapped (:func:`swapped`). ``source_maps`` (map files) are the simulated set's
+    source maps instead of the shared data's (:func:`simulated`); the other sets ignore
+    them.
 
     Raises
     ------
@@ -1127,9 +1202,9 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     """
     base, envs, swap = check_name(name)
     if swap:
-        return swapped(load(unswapped(name), seed=seed, n=n, quick=quick, data_dir=data_dir))
+        return swapped(load(unswapped(name), seed=seed, n=n, quick=quick, data_dir=data_dir, source_maps=source_maps))
     if base == "simulated":
-        return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir)
+        return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir, source_maps=source_maps)
     if base == "halmstad":
         if quick:
             sensor = halmstad(data_dir, kinds=("sensor",), limit=2, environments=envs)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Optional
 
 from .datasets import TIERS, unswapped
@@ -23,7 +24,12 @@ COMPARED = (
 
 
 def _params(params) -> str:
-    return "".join(f", {k.replace('_', ' ')} {v}" for k, v in (params or {}).items())
+    def text(k, v):
+        if k == "source_maps":  # file names here; config.json has their paths and digests
+            return "source maps " + " ".join(Path(m["path"]).name for m in v)
+        return f"{k.replace('_', ' ')} {v}"
+
+    return "".join(", " + text(k, v) for k, v in (params or {}).items())
 
 
 def _pct(rate: Optional[float], k: Optional[int] = None, n: Optional[int] = None) -> str:

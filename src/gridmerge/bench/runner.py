@@ -122,7 +122,7 @@ def resolve_methods(methods: Union[str, Sequence[str], None]) -> tuple[list, lis
     return [m for m in names if m in METHODS], [m for m in names if m not in METHODS]
 
 
-def _resolve_datasets(datasets, *, seed, n, quick, data_dir) -> tuple[list, list]:
+def _resolve_datasets(datasets, *, seed, n, quick, data_dir, source_maps=None) -> tuple[list, list]:
     """``(Dataset list, notes)``; ``"all"`` skips the Halmstad pairs when the data is absent."""
     items = [datasets] if isinstance(datasets, (str, _datasets.Dataset)) else list(datasets)
     out, notes = [], []
@@ -142,7 +142,8 @@ def _resolve_datasets(datasets, *, seed, n, quick, data_dir) -> tuple[list, list
             if name == "halmstad" and item == "all" and not _datasets.halmstad_environments(data_dir):
                 notes.append(f"halmstad skipped: no annotated maps in {_datasets.resolve_data_dir(data_dir) / 'halmstad'}")
                 continue
-            out.append(_datasets.load(name, seed=seed, n=n if _datasets.unswapped(name) == "simulated" else None, quick=quick, data_dir=data_dir))
+            out.append(_datasets.load(name, seed=seed, n=n if _datasets.unswapped(name) == "simulated" else None, quick=quick,
+                                      data_dir=data_dir, source_maps=source_maps))
     return out, notes
 
 
@@ -280,6 +281,7 @@ def run(
     memory: bool = True,
     overwrite: bool = False,
     options: Optional[dict] = None,
+    source_maps: Optional[Sequence] = None,
 ) -> BenchRun:
     """Run every method on every case and write the results folder.
 
@@ -321,6 +323,10 @@ def run(
         methods (``Method.verified``), e.g. ``{"min_confidence": 0.4}`` to measure another
         decline threshold; the baselines keep their authors' rules. Recorded in
         ``config.json`` and named in ``results.md``.
+    source_maps : sequence of path, optional
+        Map files to simulate the robots in, instead of the shared data's source maps
+        (the ``simulated`` data set only; :func:`~gridmerge.bench.datasets.simulated`).
+        Their paths and digests are recorded in ``config.json``.
 
     Returns
     -------
@@ -338,9 +344,12 @@ def run(
     warnings = [f"method {m!r} is not registered (gridmerge.align.METHODS): skipped" for m in skipped]
     if not registered:
         raise GridMergeError(f"no registered method among {', '.join(skipped) or 'the methods given'}")
-    sets, notes = _resolve_datasets("all" if datasets is None else datasets, seed=seed, n=n, quick=quick, data_dir=data_dir)
+    sets, notes = _resolve_datasets("all" if datasets is None else datasets, seed=seed, n=n, quick=quick, data_dir=data_dir,
+                                    source_maps=source_maps)
     if not sets:
         raise GridMergeError("no data set to run")
+    if source_maps is not None and not any(_datasets.unswapped(ds.name) == "simulated" for ds in sets):
+        raise GridMergeError("source maps are for the simulated data set only: run it (--dataset simulated)")
     for ds in sets:
         notes.extend(ds.notes)
 

@@ -4,7 +4,7 @@
 
     gridmerge bench [run] [--dataset simulated|halmstad|paper|all ...] [--methods sift,ransac,...]
                           [--n N] [--seed S] [--quick] [--out DIR] [--data DIR] [--progress] [--force]
-                          [--min-confidence C] [--one-sided-confidence C]
+                          [--min-confidence C] [--one-sided-confidence C] [--source-map MAP ...]
     gridmerge bench compare RUN1 RUN2
 
 The command line wires this module in with :func:`add_parser` and calls :func:`run`.
@@ -93,6 +93,9 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
     add("--quick", "bench_quick", False, action="store_true", help="a small, fast slice of every data set (CI)")
     add("--out", "bench_out", None, metavar="DIR", help="results folder (default: bench-YYYYmmdd-HHMMSS)")
     add("--data", "bench_data", None, metavar="DIR", help="shared data folder (default: ../shared/data next to the project)")
+    add("--source-map", "bench_source_maps", None, action="append", metavar="MAP",
+        help="a map file (map_server YAML, PGM or PNG) to simulate the robots in, instead of the shared data's maps "
+        "(the simulated data set only); repeatable: each simulated pair draws one of them")
     add("--progress", "bench_progress", False, action="store_true", help="show a progress bar on stderr even when it is not a terminal")
     add("--force", "bench_force", False, action="store_true", help="replace the results in an existing folder")
     add("--no-plots", "bench_plots", True, action="store_false", help="do not draw the PNG plots")
@@ -154,7 +157,8 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     pf.add_argument("--robots", dest="fleet_robots", default="2,4,8,16", metavar="N1,N2", help="fleet sizes (default 2,4,8,16)")
     pf.add_argument("--workers", dest="fleet_workers", default="1,2", metavar="W1,W2", help="process-pool sizes (default 1,2)")
     pf.add_argument("--source", dest="fleet_source", default=None, metavar="NAME",
-                    help="building: a benchmark source map name (e.g. willow) or none for a procedural one (default)")
+                    help="building: a benchmark source map name (e.g. willow), a map file (map_server YAML, PGM or PNG), "
+                    "or none for a procedural one (default)")
     pf.add_argument("--out", dest="fleet_out", default=None, metavar="DIR", help="results folder (default: bench-fleet-YYYYmmdd-HHMMSS)")
     pf.add_argument("--data", dest="fleet_data", default=None, metavar="DIR", help="shared data folder (for --source and the Halmstad fleets)")
     pf.add_argument("--no-halmstad", dest="fleet_halmstad", action="store_false", help="skip the real Halmstad fleets (every environment of the data folder: HIH, E5)")
@@ -205,7 +209,7 @@ def _cmd_run(args) -> int:
     for dest, default in (
         ("bench_datasets", None), ("bench_methods", None), ("bench_n", None), ("bench_seed", 0),
         ("bench_quick", False), ("bench_out", None), ("bench_data", None), ("bench_progress", False),
-        ("bench_force", False), ("bench_plots", True), ("bench_memory", True),
+        ("bench_force", False), ("bench_plots", True), ("bench_memory", True), ("bench_source_maps", None),
         *(("bench_" + name, None) for name in _decline.FLAGS.values()),
     ):
         setattr(args, dest, _value(args, dest, default))
@@ -234,6 +238,7 @@ def _cmd_run(args) -> int:
         memory=args.bench_memory,
         overwrite=args.bench_force,
         options=_decline.overrides({name: getattr(args, "bench_" + name) for name in _decline.FLAGS.values()}),
+        source_maps=args.bench_source_maps,
     )
     for w in bench.warnings:
         print(f"gridmerge: warning: {w}", file=sys.stderr)
@@ -279,14 +284,17 @@ def _int_list(text: str, what: str) -> list:
 
 def _cmd_fleet(args) -> int:
     from ..bench import fleet
-    from ..bench.datasets import source_map
+    from ..bench.datasets import file_source, source_map
 
     robots = _int_list(args.fleet_robots, "--robots")
     workers = _int_list(args.fleet_workers, "--workers")
     out = Path(args.fleet_out) if args.fleet_out else Path(time.strftime("bench-fleet-%Y%m%d-%H%M%S"))
     if (out / "fleet.json").exists() and not args.fleet_force:
         raise _BenchUsageError(f"{out} holds results already; use --force to replace them")
-    source = None if args.fleet_source in (None, "building") else source_map(args.fleet_source, args.fleet_data)
+    name = args.fleet_source
+    if name not in (None, "building") and Path(name).is_file():
+        name = file_source(name)  # a map file, not a source map's name
+    source = None if name in (None, "building") else source_map(name, args.fleet_data)
     bar = ProgressBar() if (args.fleet_progress or sys.stderr.isatty()) else None
     seed = getattr(args, "fleet_seed", None)
     if seed is None:  # a parent parser's --seed
