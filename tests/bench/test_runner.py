@@ -317,6 +317,7 @@ def test_cli_simulates_the_robots_in_the_users_maps(tmp_path, capsys):
     """``--source-map`` (repeatable) makes the simulated pairs of those maps; the run
     names them; a missing file or a data set that does not simulate is one line."""
     import cv2
+    import numpy as np
 
     from gridmerge import save_map, samples
     from gridmerge.cli.main import main
@@ -324,6 +325,10 @@ def test_cli_simulates_the_robots_in_the_users_maps(tmp_path, capsys):
     one = save_map(samples.building(21, (360, 480)), tmp_path / "one.yaml")
     two = tmp_path / "two.png"
     cv2.imwrite(str(two), samples.building(22, (360, 480)).render(unknown=205))
+    tiny = tmp_path / "tiny.png"
+    room = np.zeros((60, 60), np.uint8)
+    room[5:55, 5:55] = 254
+    cv2.imwrite(str(tiny), room)  # one room: no two distant parts for a negative pair
     out = tmp_path / "run"
     code = main(["bench", "--dataset", "simulated", "--n", "2", "--methods", "orb", "--no-plots", "--no-memory",
                  "--source-map", str(one), "--source-map", str(two), "--out", str(out)])
@@ -338,8 +343,9 @@ def test_cli_simulates_the_robots_in_the_users_maps(tmp_path, capsys):
     for args, message in (
         (["--dataset", "simulated", "--source-map", str(tmp_path / "nope.yaml")], "source map not found"),
         (["--dataset", "paper", "--source-map", str(one)], "for the simulated data set only"),
+        (["--dataset", "simulated", "--n", "5", "--source-map", str(tiny)], "too small for a negative pair"),
     ):
-        code = main(["bench", *args, "--n", "1", "--methods", "orb", "--no-plots", "--out", str(tmp_path / "bad")])
+        code = main(["bench", *args, "--methods", "orb", "--no-plots", "--out", str(tmp_path / "bad")])
         err = capsys.readouterr().err
         assert code not in (0, 1) and message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
-        assert not (tmp_path / "bad" / "cases.jsonl").exists()
+        assert not (tmp_path / "bad").exists()  # refused before the results folder is made

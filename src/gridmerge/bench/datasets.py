@@ -766,8 +766,9 @@ def simulated(
         PNG image) to simulate the robots in, instead of the shared data and the
         procedural buildings: each case draws one of them evenly (a negative pair of two
         different places, two of them; with a single map, every negative pair is two
-        distant parts of it). ``sources`` is then ignored. Their paths and SHA-256 digests
-        are recorded in ``params["source_maps"]``, so that a run names the maps it used.
+        distant parts of it; a single map too small for them is refused at once).
+        ``sources`` is then ignored. Their paths and the SHA-256 of their cells are
+        recorded in ``params["source_maps"]``, so that a run names the maps it used.
 
     Returns
     -------
@@ -828,6 +829,12 @@ def simulated(
         case.meta["see_through"] = see_through
         return case
 
+    if source_maps is not None and len(available) == 1:
+        # One map: its negative pairs are two distant parts of it. A map too small for
+        # them fails here, before a run starts, not in the middle of one.
+        first = next((k for k in range(n) if is_negative(k)), None)
+        if first is not None:
+            build(first)
     return Dataset("simulated", n, build, notes, params)
 
 
