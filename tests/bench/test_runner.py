@@ -349,3 +349,62 @@ def test_cli_simulates_the_robots_in_the_users_maps(tmp_path, capsys):
         err = capsys.readouterr().err
         assert code not in (0, 1) and message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
         assert not (tmp_path / "bad").exists()  # refused before the results folder is made
+
+
+@pytest.fixture(scope="module")
+def named_run(tmp_path_factory):
+    """A run whose data sets were given by name (simulated in a map file, and Table I)."""
+    from gridmerge import save_map, samples
+
+    base = tmp_path_factory.mktemp("named")
+    source = save_map(samples.building(31, (360, 480)), base / "office.yaml")
+    bench = runner.run("orb,sift", ["simulated", "paper"], seed=2, n=3, quick=True, out_dir=base / "run", plots=False,
+                       memory=False, source_maps=[source])
+    return bench, source
+
+
+def test_a_case_is_built_again_and_aligned_as_the_run_did(named_run):
+    bench, source = named_run
+    case = runner.rebuild_case(bench.out_dir, "simulated/0002")
+    original = datasets.simulated(n=3, seed=2, source_maps=[source])[2]
+    assert case.a == original.a and case.b == original.b and case.meta == original.meta
+    assert runner.rebuild_case(bench, "paper/table1-seed0").id == "paper/table1-seed0"
+    for cid in ("simulated/0000", "simulated/0002"):
+        rec = next(r for r in bench.records if r["case_id"] == cid and r["method"] == "sift")
+        _, result = runner.replay(bench, cid, "sift")
+        assert result.confidence == rec["confidence"]
+        if rec["estimate"] is not None:
+            assert result.matrix.tolist() == rec["estimate"]["matrix"]
+    with pytest.raises(GridMergeError, match="no case"):
+        runner.rebuild_case(bench, "simulated/0099")
+    with pytest.raises(GridMergeError, match="was not run"):
+        runner.replay(bench, "simulated/0000", "hybrid")
+
+
+def test_a_case_of_a_data_set_given_as_an_object_is_not_passed_off(runs):
+    r1, _, _ = runs  # its simulated set was built with its own shapes, not by name
+    with pytest.raises(GridMergeError, match="differs|cannot be built"):
+        runner.rebuild_case(r1, "simulated/0000")
+
+
+def test_cli_bench_case_writes_the_maps_and_the_replay(named_run, tmp_path, capsys):
+    from gridmerge import load_map
+    from gridmerge.cli.main import main
+
+    bench, _ = named_run
+    out = tmp_path / "case"
+    assert main(["bench", "case", str(bench.out_dir), "simulated/0000", "--method", "sift", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "simulated/0000" in printed and "sift:" in printed
+    case = runner.rebuild_case(bench, "simulated/0000")
+    assert load_map(out / "a.yaml") == case.a and load_map(out / "b.yaml") == case.b
+    info = json.loads((out / "case.json").read_text())
+    rec = next(r for r in bench.records if r["case_id"] == "simulated/0000" and r["method"] == "sift")
+    assert info["replayed"]["confidence"] == rec["confidence"] and info["positive"] is True
+    assert len(info["records"]) == 2 and info["truth_b_to_a"] is not None
+    assert (out / "merge.png").is_file() == rec["aligned"]
+    assert main(["bench", "case", str(bench.out_dir), "simulated/0000", "--out", str(out)]) == 2  # files there: --force
+    assert main(["bench", "case", str(bench.out_dir), "simulated/0000", "--out", str(out), "--force"]) == 0
+    assert main(["bench", "case", str(bench.out_dir), "halmstad/X-Y", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "no case 'halmstad/X-Y'" in err and "Traceback" not in err

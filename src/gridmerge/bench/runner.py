@@ -43,7 +43,7 @@ from . import datasets as _datasets
 from .metrics import TIMING_FIELDS, evaluate, summarize
 from .report import compare_summaries, results_markdown
 
-__all__ = ["BenchRun", "run", "compare", "resolve_methods", "FILES"]
+__all__ = ["BenchRun", "run", "compare", "rebuild_case", "replay", "resolve_methods", "FILES"]
 
 #: Files of a results folder (besides the plots).
 FILES = ("cases.jsonl", "summary.json", "results.md", "config.json")
@@ -432,3 +432,88 @@ def compare(run1: Union[BenchRun, str, os.PathLike], run2: Union[BenchRun, str, 
     r1 = run1 if isinstance(run1, BenchRun) else BenchRun.load(run1)
     r2 = run2 if isinstance(run2, BenchRun) else BenchRun.load(run2)
     return compare_summaries(r1, r2)
+
+
+def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str) -> _datasets.Case:
+    """The case ``case_id`` of a results folder, built again from its ``config.json``
+    (seed, data sets, source maps, data folder), to look at a failure or run it again.
+
+    Cases are built from the seed, so the maps are those the run aligned; the rebuilt
+    case is checked against the run's record (its maps' shapes, and for simulated cases
+    its source and overlap).
+
+    Parameters
+    ----------
+    run : BenchRun or path
+    case_id : str
+        As in ``cases.jsonl``, e.g. ``"simulated/0042"`` or ``"halmstad/E5_03-E5_12"``.
+
+    Returns
+    -------
+    Case
+
+    Raises
+    ------
+    GridMergeError
+        No such case in the run; the run's data sets cannot be built again (given to
+        :func:`run` as objects built otherwise, or a data folder that has changed).
+    """
+    bench = run if isinstance(run, BenchRun) else BenchRun.load(run)
+    records = [r for r in bench.records if r.get("case_id") == case_id]
+    if not records:
+        raise GridMergeError(f"no case {case_id!r} in {bench.out_dir}")
+    cfg = bench.config
+    seed, data_dir = int(cfg.get("seed", 0)), cfg.get("data_dir")
+    for entry in cfg.get("datasets", []):
+        name = entry["name"]
+        base = _datasets.unswapped(name)
+        if base not in _datasets.DATASETS:
+            continue
+        sources = (entry.get("params") or {}).get("source_maps")
+        maps = [m["path"] for m in sources] if sources else None
+        if base == "simulated":
+            head, _, number = case_id.partition("/")
+            if head != name or not number.isdigit():
+                continue
+            ds = _datasets.load(name, seed=seed, n=int(entry["cases"]), data_dir=data_dir, source_maps=maps)
+            case = ds[int(number)]
+        else:
+            # Halmstad's cases are named by their maps; the run may have used a slice.
+            ds = _datasets.load(name, seed=seed, data_dir=data_dir)
+            case = next((c for c in ds if c.id == case_id), None)
+            if case is None:
+                continue
+        _check_rebuilt(case, records[0], bench.out_dir)
+        return case
+    raise GridMergeError(f"case {case_id!r} of {bench.out_dir} cannot be built again from its config.json "
+                         "(its data set was not given by name)")
+
+
+def _check_rebuilt(case, record: dict, where) -> None:
+    same = list(case.a.shape) == list(record.get("a_shape") or []) and list(case.b.shape) == list(record.get("b_shape") or [])
+    if same and case.dataset.startswith("simulated"):
+        same = case.meta.get("source") == record.get("source") and case.meta.get("overlap") == record.get("overlap")
+    if not same:
+        raise GridMergeError(f"case {case.id!r} built again differs from the one {where} aligned "
+                             "(a data set built otherwise, or changed maps)")
+
+
+def replay(run: Union[BenchRun, str, os.PathLike], case_id: str, method: str):
+    """Align one case of a results folder again with ``method`` exactly as the run did
+    (its seed, OpenCV's seed, its decline options, any scale for maps of unknown
+    resolution). Returns ``(case, AlignResult)``; the result's pose and confidence are
+    those recorded (timings aside).
+
+    Raises
+    ------
+    GridMergeError
+        As :func:`rebuild_case`; a method the run did not use; a method that fails.
+    """
+    bench = run if isinstance(run, BenchRun) else BenchRun.load(run)
+    if method not in bench.config.get("methods", []):
+        raise GridMergeError(f"method {method!r} was not run in {bench.out_dir} (it ran {', '.join(bench.config.get('methods', []))})")
+    case = rebuild_case(bench, case_id)
+    result, _, _, error = _align_measured(case, method, int(bench.config.get("seed", 0)), False, bench.config.get("options"))
+    if result is None:
+        raise GridMergeError(f"{method} failed on {case_id}: {error}")
+    return case, result

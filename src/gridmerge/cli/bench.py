@@ -6,6 +6,7 @@
                           [--n N] [--seed S] [--quick] [--out DIR] [--data DIR] [--progress] [--force]
                           [--min-confidence C] [--one-sided-confidence C] [--source-map MAP ...]
     gridmerge bench compare RUN1 RUN2
+    gridmerge bench case RUN CASE_ID --out DIR [--method M]
 
 The command line wires this module in with :func:`add_parser` and calls :func:`run`.
 """
@@ -17,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 from typing import Optional, Sequence
+
+import numpy as np
 
 from ..errors import GridMergeError
 from . import _decline
@@ -135,7 +138,7 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     )
     aliases = _run_options(p, suppress=False)
     p.set_defaults(bench_command="run", bench_run1=None, bench_run2=None, bench_aliases=aliases)
-    sub = p.add_subparsers(dest="bench_command", metavar="{run,compare,fleet}")
+    sub = p.add_subparsers(dest="bench_command", metavar="{run,compare,case,fleet}")
     pr = sub.add_parser("run", parents=parents, help="run the benchmark (default)", description="Run the benchmark.")
     _run_options(pr, suppress=True)
     pc = sub.add_parser(
@@ -147,6 +150,19 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     )
     pc.add_argument("bench_run1", metavar="RUN1", help="results folder of the first run")
     pc.add_argument("bench_run2", metavar="RUN2", help="results folder of the second run")
+    pk = sub.add_parser(
+        "case",
+        parents=parents,
+        help="write one case of a run as map files, and align it again as the run did",
+        description="Build one case of a results folder again from its config.json and write its two maps "
+        "(a.yaml, b.yaml), case.json (truth, description, the run's records of it) and, with --method, "
+        "that method's alignment again (the same pose and confidence as recorded) and merge.png.",
+    )
+    pk.add_argument("bench_case_run", metavar="RUN", help="results folder")
+    pk.add_argument("bench_case_id", metavar="CASE_ID", help="a case_id of its cases.jsonl, e.g. simulated/0042")
+    pk.add_argument("--out", dest="bench_case_out", required=True, metavar="DIR", help="folder to write into")
+    pk.add_argument("--method", dest="bench_case_method", default=None, metavar="M", help="align the case again with this method")
+    pk.add_argument("--force", dest="bench_case_force", action="store_true", help="replace files in an existing folder")
     pf = sub.add_parser(
         "fleet",
         parents=parents,
@@ -272,6 +288,69 @@ def _cmd_compare(args) -> int:
     return EXIT_OK
 
 
+def _cmd_case(args) -> int:
+    import json
+
+    from ..bench import runner
+    from ..io import atomic_write, save_map
+
+    out = Path(args.bench_case_out)
+    names = ("a.yaml", "b.yaml", "case.json", "merge.png")
+    if out.exists() and not out.is_dir():
+        raise _BenchUsageError(f"{out} is a file")
+    if not args.bench_case_force and any((out / n).exists() for n in names):
+        raise _BenchUsageError(f"{out} holds a case already; use --force to replace it")
+    bench = runner.BenchRun.load(args.bench_case_run)
+    method = args.bench_case_method
+    if method is not None:
+        case, result = runner.replay(bench, args.bench_case_id, method)
+    else:
+        case, result = runner.rebuild_case(bench, args.bench_case_id), None
+    out.mkdir(parents=True, exist_ok=True)
+    save_map(case.a, out / "a.yaml")
+    save_map(case.b, out / "b.yaml")
+    info = {
+        "case_id": case.id,
+        "dataset": case.dataset,
+        "positive": case.positive,
+        "truth_b_to_a": None if case.truth is None else np.asarray(case.truth).tolist(),
+        "meta": case.meta,
+        "run": str(bench.out_dir),
+        "seed": bench.config.get("seed"),
+        "records": [r for r in bench.records if r.get("case_id") == case.id],
+    }
+    if result is not None:
+        info["replayed"] = {"method": method, "success": bool(result.success), "confidence": float(result.confidence),
+                            "matrix": None if result.matrix is None else np.asarray(result.matrix).tolist(),
+                            "message": result.message}
+    atomic_write(out / "case.json", (json.dumps(info, indent=2, default=str) + "\n").encode())
+    print(f"{case.id}: {'positive' if case.positive else 'negative'} pair; wrote {out / 'a.yaml'}, {out / 'b.yaml'}, {out / 'case.json'}")
+    if result is not None:
+        print(f"{method}: {result.message}")
+        if result.success:
+            try:
+                from ..plot import plot_merge, save_plot
+
+                save_plot(plot_merge(case.a, case.b, result, _merged(case.a, case.b, result.transform)), out / "merge.png")
+                print(f"picture: {out / 'merge.png'}")
+            except ImportError:
+                print("gridmerge: warning: merge.png skipped: matplotlib is not installed", file=sys.stderr)
+    return EXIT_OK
+
+
+def _merged(a, b, transform):
+    """a and b fused on one canvas, b placed by ``transform`` (the picture of a replay)."""
+    from ..fuse import fuse_values, warp_values
+    from ..grid import OccupancyGrid
+    from ..merge import canvas_for
+
+    (h, w), (left, top, _) = canvas_for([b.shape], [transform], a.shape)
+    shift = np.array([[1.0, 0.0, left], [0.0, 1.0, top], [0.0, 0.0, 1.0]])
+    m = np.vstack([np.asarray(transform.params)[:2], [0.0, 0.0, 1.0]])
+    layers = (warp_values(a.data, shift, (h, w)), warp_values(b.data, shift @ m, (h, w)))
+    return OccupancyGrid(fuse_values(layers, "average"), resolution=a.resolution)
+
+
 def _int_list(text: str, what: str) -> list:
     try:
         values = [int(v) for v in text.split(",") if v.strip()]
@@ -318,4 +397,6 @@ def run(args) -> int:
         return _cmd_compare(args)
     if command == "fleet":
         return _cmd_fleet(args)
+    if command == "case":
+        return _cmd_case(args)
     return _cmd_run(args)
