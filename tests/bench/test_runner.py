@@ -408,3 +408,24 @@ def test_cli_bench_case_writes_the_maps_and_the_replay(named_run, tmp_path, caps
     assert main(["bench", "case", str(bench.out_dir), "halmstad/X-Y", "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert "no case 'halmstad/X-Y'" in err and "Traceback" not in err
+
+
+def test_moved_source_maps_are_found_by_name_and_checked_by_their_cells(named_run, tmp_path):
+    import shutil
+
+    from gridmerge import save_map, samples
+
+    bench, source = named_run
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    for suffix in (".yaml", ".pgm"):
+        shutil.copy2(source.with_suffix(suffix), moved / source.with_suffix(suffix).name)
+    case = runner.rebuild_case(bench, "simulated/0001", maps_dir=moved)
+    assert case.b == runner.rebuild_case(bench, "simulated/0001").b
+    other = tmp_path / "other"
+    other.mkdir()
+    save_map(samples.building(32, (360, 480)), other / source.name)  # same name, another building
+    with pytest.raises(GridMergeError, match="not the one the run used"):
+        runner.rebuild_case(bench, "simulated/0001", maps_dir=other)
+    with pytest.raises(GridMergeError, match="source map not found"):
+        runner.rebuild_case(bench, "simulated/0001", maps_dir=tmp_path / "nowhere")

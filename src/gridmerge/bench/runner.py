@@ -434,7 +434,7 @@ def compare(run1: Union[BenchRun, str, os.PathLike], run2: Union[BenchRun, str, 
     return compare_summaries(r1, r2)
 
 
-def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str) -> _datasets.Case:
+def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str, maps_dir=None) -> _datasets.Case:
     """The case ``case_id`` of a results folder, built again from its ``config.json``
     (seed, data sets, source maps, data folder), to look at a failure or run it again.
 
@@ -447,6 +447,10 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str) -> _datas
     run : BenchRun or path
     case_id : str
         As in ``cases.jsonl``, e.g. ``"simulated/0042"`` or ``"halmstad/E5_03-E5_12"``.
+    maps_dir : path, optional
+        Where the run's source maps (``--source-map``) are now, found by file name;
+        default: the paths the run recorded. Either way each map must have the cells
+        the run recorded (their SHA-256).
 
     Returns
     -------
@@ -456,7 +460,8 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str) -> _datas
     ------
     GridMergeError
         No such case in the run; the run's data sets cannot be built again (given to
-        :func:`run` as objects built otherwise, or a data folder that has changed).
+        :func:`run` as objects built otherwise, a data folder that has changed, source
+        maps missing or changed).
     """
     bench = run if isinstance(run, BenchRun) else BenchRun.load(run)
     records = [r for r in bench.records if r.get("case_id") == case_id]
@@ -470,12 +475,15 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str) -> _datas
         if base not in _datasets.DATASETS:
             continue
         sources = (entry.get("params") or {}).get("source_maps")
-        maps = [m["path"] for m in sources] if sources else None
+        maps = [m["path"] if maps_dir is None else Path(maps_dir) / Path(m["path"]).name for m in sources] if sources else None
         if base == "simulated":
             head, _, number = case_id.partition("/")
             if head != name or not number.isdigit():
                 continue
             ds = _datasets.load(name, seed=seed, n=int(entry["cases"]), data_dir=data_dir, source_maps=maps)
+            for was, now in zip(sources or [], ds.params.get("source_maps", [])):
+                if was.get("cells_sha256") != now["cells_sha256"]:
+                    raise GridMergeError(f"source map {now['path']} is not the one the run used (its cells differ)")
             case = ds[int(number)]
         else:
             # Halmstad's cases are named by their maps; the run may have used a slice.
@@ -492,17 +500,20 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str) -> _datas
 def _check_rebuilt(case, record: dict, where) -> None:
     same = list(case.a.shape) == list(record.get("a_shape") or []) and list(case.b.shape) == list(record.get("b_shape") or [])
     if same and case.dataset.startswith("simulated"):
-        same = case.meta.get("source") == record.get("source") and case.meta.get("overlap") == record.get("overlap")
+        def source(name):  # a map file may have moved (rebuild_case's maps_dir): its name and cells count
+            return Path(name[len(_datasets.FILE_PREFIX):]).name if str(name).startswith(_datasets.FILE_PREFIX) else name
+
+        same = source(case.meta.get("source")) == source(record.get("source")) and case.meta.get("overlap") == record.get("overlap")
     if not same:
         raise GridMergeError(f"case {case.id!r} built again differs from the one {where} aligned "
                              "(a data set built otherwise, or changed maps)")
 
 
-def replay(run: Union[BenchRun, str, os.PathLike], case_id: str, method: str):
+def replay(run: Union[BenchRun, str, os.PathLike], case_id: str, method: str, maps_dir=None):
     """Align one case of a results folder again with ``method`` exactly as the run did
     (its seed, OpenCV's seed, its decline options, any scale for maps of unknown
     resolution). Returns ``(case, AlignResult)``; the result's pose and confidence are
-    those recorded (timings aside).
+    those recorded (timings aside). ``maps_dir``: as :func:`rebuild_case`.
 
     Raises
     ------
@@ -512,7 +523,7 @@ def replay(run: Union[BenchRun, str, os.PathLike], case_id: str, method: str):
     bench = run if isinstance(run, BenchRun) else BenchRun.load(run)
     if method not in bench.config.get("methods", []):
         raise GridMergeError(f"method {method!r} was not run in {bench.out_dir} (it ran {', '.join(bench.config.get('methods', []))})")
-    case = rebuild_case(bench, case_id)
+    case = rebuild_case(bench, case_id, maps_dir)
     result, _, _, error = _align_measured(case, method, int(bench.config.get("seed", 0)), False, bench.config.get("options"))
     if result is None:
         raise GridMergeError(f"{method} failed on {case_id}: {error}")

@@ -6,7 +6,7 @@
                           [--n N] [--seed S] [--quick] [--out DIR] [--data DIR] [--progress] [--force]
                           [--min-confidence C] [--one-sided-confidence C] [--source-map MAP ...]
     gridmerge bench compare RUN1 RUN2
-    gridmerge bench case RUN CASE_ID --out DIR [--method M]
+    gridmerge bench case RUN CASE_ID --out DIR [--method M] [--maps DIR]
 
 The command line wires this module in with :func:`add_parser` and calls :func:`run`.
 """
@@ -162,6 +162,8 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
     pk.add_argument("bench_case_id", metavar="CASE_ID", help="a case_id of its cases.jsonl, e.g. simulated/0042")
     pk.add_argument("--out", dest="bench_case_out", required=True, metavar="DIR", help="folder to write into")
     pk.add_argument("--method", dest="bench_case_method", default=None, metavar="M", help="align the case again with this method")
+    pk.add_argument("--maps", dest="bench_case_maps", default=None, metavar="DIR",
+                    help="folder holding the run's --source-map files now (found by name, checked by their cells)")
     pk.add_argument("--force", dest="bench_case_force", action="store_true", help="replace files in an existing folder")
     pf = sub.add_parser(
         "fleet",
@@ -303,9 +305,9 @@ def _cmd_case(args) -> int:
     bench = runner.BenchRun.load(args.bench_case_run)
     method = args.bench_case_method
     if method is not None:
-        case, result = runner.replay(bench, args.bench_case_id, method)
+        case, result = runner.replay(bench, args.bench_case_id, method, args.bench_case_maps)
     else:
-        case, result = runner.rebuild_case(bench, args.bench_case_id), None
+        case, result = runner.rebuild_case(bench, args.bench_case_id, args.bench_case_maps), None
     out.mkdir(parents=True, exist_ok=True)
     save_map(case.a, out / "a.yaml")
     save_map(case.b, out / "b.yaml")
