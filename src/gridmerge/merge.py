@@ -80,6 +80,7 @@ __all__ = [
     "reverify",
     "canvas_for",
     "canvas_problem",
+    "fuse_on_canvas",
     "PAIR_STRATEGIES",
     "SCALE_CHECKS",
     "MAX_CANVAS_FACTOR",
@@ -314,6 +315,42 @@ def canvas_for(shapes: Sequence[tuple[int, int]], transforms: Sequence[AffineTra
     top = max(0, math.ceil(-0.5 - min(ys) - eps))
     bottom = max(0, math.ceil(max(ys) - (h - 0.5) - eps))
     return (h + top + bottom, w + left + right), (left, top, bottom)
+
+
+def fuse_on_canvas(
+    maps: Sequence[OccupancyGrid],
+    transforms: Sequence[AffineTransform],
+    *,
+    fusion: str = "average",
+    interpolation: str = "linear",
+) -> tuple[np.ndarray, SimilarityTransform]:
+    """Maps placed in one pixel frame, fused on the smallest canvas that holds them all.
+
+    Parameters
+    ----------
+    maps : sequence of OccupancyGrid
+    transforms : sequence of AffineTransform
+        Each map's pixels -> the common frame's pixels.
+    fusion, interpolation : str
+        As :func:`gridmerge.fuse.fuse_values` and :func:`gridmerge.fuse.warp_values`.
+
+    Returns
+    -------
+    fused : (H, W) float array
+        The canvas (``NaN`` unknown).
+    to_canvas : SimilarityTransform
+        The common frame's pixels -> the canvas's (a shift, :func:`canvas_for` with a
+        1 x 1 reference); map ``k`` lies on the canvas by ``to_canvas @ transforms[k]``.
+
+    Notes
+    -----
+    The maps are warped one at a time (the canvas may be large and the fleet long);
+    check the canvas first with :func:`canvas_problem`.
+    """
+    (ch, cw), (left, top, _) = canvas_for([m.shape for m in maps], transforms, (1, 1))
+    to_canvas = SimilarityTransform(translation=(left, top))
+    layers = (warp_values(m.data, (to_canvas @ t).params, (ch, cw), interpolation=interpolation) for m, t in zip(maps, transforms))
+    return fuse_values(layers, fusion), to_canvas
 
 
 def canvas_problem(
@@ -1138,14 +1175,11 @@ class Merger:
                                  max_canvas_cells=self.limits.max_canvas_cells, max_canvas_factor=self.limits.max_canvas_factor)
         if problem:
             return MergeResult(False, None, transforms=[None] * n, message=problem, **base)
-        (ch, cw), (left, top, _) = canvas_for(shapes, placed_t, (1, 1))
-        shift = SimilarityTransform(translation=(left, top))
+        fused, shift = fuse_on_canvas([maps[k] for k in placed], placed_t, fusion=self.fusion, interpolation=self.interpolation)
+        ch = fused.shape[0]
         transforms: list[AffineTransform | None] = [None] * n
         for k, t in zip(placed, placed_t):
             transforms[k] = shift @ t
-        # One warped layer at a time: the canvas may be large and the fleet long.
-        layers = (warp_values(maps[k].data, transforms[k].params, (ch, cw), interpolation=self.interpolation) for k in placed)  # type: ignore[union-attr]
-        fused = fuse_values(layers, self.fusion)
         # The canvas's lower-left corner, in the reference's metric frame.
         back = (shift @ to_target).inverse
         corner = ref.pixel_to_metric(back(np.array([[-0.5, ch - 0.5]])))[0]

@@ -793,9 +793,8 @@ def simulated(
     params: dict = {"see_through": see_through}
     notes: list = []
     if source_maps is not None:
-        available = _check_source_maps(source_maps, see_through)
-        params["source_maps"] = [{"path": s[len(FILE_PREFIX):], "cells_sha256": _cells_digest(_source_map(s, None))}
-                                 for s in available]
+        available, digests = _check_source_maps(source_maps, see_through)
+        params["source_maps"] = [{"path": s[len(FILE_PREFIX):], "cells_sha256": h} for s, h in zip(available, digests)]
         data_key = None
     else:
         d = resolve_data_dir(data_dir)
@@ -838,17 +837,21 @@ def simulated(
     return Dataset("simulated", n, build, notes, params)
 
 
-def _check_source_maps(paths, see_through: int) -> list:
-    """Source names of the map files ``paths`` (duplicates dropped), each read and found
-    to hold free space where a robot fits; a bad one raises :class:`GridMergeError`."""
+def _check_source_maps(paths, see_through: int) -> tuple[list, list]:
+    """``(source names, cell digests)`` of the map files ``paths`` (duplicates dropped),
+    each read once and found to hold free space where a robot fits; a bad one raises
+    :class:`GridMergeError`."""
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
     names = list(dict.fromkeys(file_source(p) for p in paths))
     if not names:
         raise GridMergeError("no source map given: give at least one map file")
+    digests = []
     for name in names:
-        _World(_source_map(name, None), name[len(FILE_PREFIX):], see_through)  # raises if no robot fits
-    return names
+        grid = _source_map(name, None)
+        _World(grid, name[len(FILE_PREFIX):], see_through)  # raises if no robot fits
+        digests.append(_cells_digest(grid))
+    return names, digests
 
 
 def _cells_digest(grid: OccupancyGrid) -> str:

@@ -342,15 +342,12 @@ def _cmd_case(args) -> int:
 
 def _merged(a, b, transform):
     """a and b fused on one canvas, b placed by ``transform`` (the picture of a replay)."""
-    from ..fuse import fuse_values, warp_values
     from ..grid import OccupancyGrid
-    from ..merge import canvas_for
+    from ..merge import fuse_on_canvas
+    from ..transforms import SimilarityTransform
 
-    (h, w), (left, top, _) = canvas_for([b.shape], [transform], a.shape)
-    shift = np.array([[1.0, 0.0, left], [0.0, 1.0, top], [0.0, 0.0, 1.0]])
-    m = np.vstack([np.asarray(transform.params)[:2], [0.0, 0.0, 1.0]])
-    layers = (warp_values(a.data, shift, (h, w)), warp_values(b.data, shift @ m, (h, w)))
-    return OccupancyGrid(fuse_values(layers, "average"), resolution=a.resolution)
+    fused, _ = fuse_on_canvas([a, b], [SimilarityTransform(), transform])
+    return OccupancyGrid(fused, resolution=a.resolution)
 
 
 def _int_list(text: str, what: str) -> list:
