@@ -1576,3 +1576,21 @@ def test_a_pose_turned_about_the_overlap_is_judged_again_polished_beyond_reach(s
     r = align(case.a, case.b, rng=0)
     assert r.success and r.details["source"].endswith("(polished beyond reach)"), r.details
     assert corner_error(r.transform, case.truth, case.b.shape) < 2.0
+
+
+def test_a_taken_pose_records_how_its_walls_fix_it_and_max_slide_declines():
+    """Every pose otherwise taken is slid along its shared walls
+    (:attr:`AlignOptions.max_slide`); a right pose in rooms loses much of its agreement,
+    and a limit below what it keeps declines it, saying why."""
+    a, b, truth = samples.robot_pair(0)
+    r = align(a, b)
+    assert r.success
+    kept = r.details["slide"]["kept"]
+    assert 0.0 < kept <= 0.75 and r.details["slide"]["px"] > 0
+    strict = align(a, b, max_slide=kept / 2)
+    assert not strict.success and strict.message.startswith("declined: the walls do not fix the pose")
+    assert strict.candidate is not None
+    np.testing.assert_allclose(strict.candidate.params, r.transform.params)
+    free = align(a, b, max_slide=None)
+    assert free.success and "slide" not in free.details
+    np.testing.assert_allclose(free.transform.params, r.transform.params)

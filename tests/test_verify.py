@@ -211,3 +211,50 @@ def test_near_is_the_distance_transforms_own_threshold():
     # A strided view is read as the cells it shows.
     big = rng.random((40, 60)) < 0.05
     np.testing.assert_array_equal(_near(big[::2, 1::3], 3.0), _near(np.ascontiguousarray(big[::2, 1::3]), 3.0))
+
+
+from gridmerge.verify import slide  # noqa: E402
+
+
+def _band_with_wall(angle_deg: float = 0.0) -> OccupancyGrid:
+    """Free space around one straight wall through its middle, unknown elsewhere."""
+    d = np.full((120, 120), np.nan)
+    yy, xx = np.mgrid[0:120, 0:120]
+    u = np.array([math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))])
+    along = (xx - 60) * u[0] + (yy - 60) * u[1]
+    across = -(xx - 60) * u[1] + (yy - 60) * u[0]
+    band = (np.abs(along) < 45) & (np.abs(across) < 20)
+    d[band] = 0.0
+    d[band & (np.abs(across) < 0.6)] = 1.0
+    return OccupancyGrid(d)
+
+
+@pytest.mark.parametrize("angle", [0.0, 30.0, 90.0])
+def test_slide_along_one_wall_keeps_its_agreement(angle):
+    """b on a by one straight wall: the maps do not say where along it b lies."""
+    g = _band_with_wall(angle)
+    s = slide(g, g, SimilarityTransform(), tolerance=2.0, fraction=0.15)
+    u = np.array([math.cos(math.radians(angle)), math.sin(math.radians(angle))])
+    assert abs(float(np.dot(s.direction, u))) > 0.98  # slid along the wall
+    assert s.kept > 0.9
+    assert s.distance == pytest.approx(0.15 * math.sqrt(verify(g, g, SimilarityTransform()).overlap_cells))
+
+
+def test_slide_in_a_closed_room_loses_its_walls():
+    d = np.full((90, 90), np.nan)
+    d[15:75, 15:75] = 0.0
+    d[15:75, [15, 74]] = 1.0
+    d[[15, 74], 15:75] = 1.0
+    g = OccupancyGrid(d)
+    s = slide(g, g, SimilarityTransform(), tolerance=2.0, fraction=0.15)
+    assert s.kept < 0.7  # half the walls cross the room's free space either way
+
+
+def test_slide_without_agreeing_walls_is_none():
+    a = np.zeros((40, 40))
+    a[10, 5:35] = 1.0
+    b = np.zeros((40, 40))
+    b[30, 5:35] = 1.0
+    assert slide(OccupancyGrid(a), OccupancyGrid(b), SimilarityTransform(), tolerance=2.0) is None
+    empty = OccupancyGrid(np.zeros((40, 40)))
+    assert slide(empty, empty, SimilarityTransform()) is None

@@ -94,7 +94,7 @@ from .matching import knn, match_nn, match_smnn, match_snn
 from .refine import WallICP, prepare_fields, refine_direct
 from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
 from .correlate import correlation_hypotheses, match_rotation, rotation_candidates
-from .verify import Verification, WallScorer, chance_wall_agreement, despeckle, verify
+from .verify import Slide, Verification, WallScorer, chance_wall_agreement, despeckle, slide, verify
 
 __all__ = ["AlignOptions", "AlignResult", "align", "METHODS", "Method", "Estimate", "register_method", "default_extractor", "ANY_SCALE", "reference_first"]
 
@@ -167,6 +167,16 @@ class AlignOptions:
     min_confidence : float
         Decline below this confidence (CLI ``--min-confidence``; docs/benchmarks.md, "The
         decline threshold", measures what lower values merge, rightly and wrongly).
+    max_slide : float or None
+        Decline a pose that the walls do not fix: when b, slid along the walls the two
+        maps share (their main direction in the overlap) by 0.15 of the overlap's size
+        (the square root of its cells) either way, keeps more than this share of its wall
+        agreement on both sides (:func:`gridmerge.verify.slide`;
+        ``result.details["slide"]`` records it for every pose otherwise taken). A pose
+        held by one straight wall or one corridor, the rest of b on a's unknown cells,
+        agrees nearly as well anywhere along it: the maps cannot say where b lies along
+        that line, and maps of two places fitted by chance look like that.
+        docs/benchmarks.md, forty-third session, measures it. ``None`` skips the test.
     max_keypoints : int
         Strongest keypoints kept per map (bounds time and memory).
     feature_pixels : int
@@ -304,6 +314,7 @@ class AlignOptions:
     min_overlap_walls: int = 10
     min_wall_share: float = 0.15
     min_confidence: float = 0.5
+    max_slide: float | None = 0.75
     max_keypoints: int = 20000
     feature_pixels: int = 400_000
     keypoints_first: float = 0.9
@@ -2065,6 +2076,8 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
     ca, oa, cb, ob = cut if cut is not None else working_maps(a, b, despeckled=spec.verified)
     remembered = {} if memory is None else {"memory": memory.of(oa, ob, ca, cb)}
     est = spec.estimate(ca, cb, _shifted(fa, -oa), _shifted(fb, -ob), opts, gen, **remembered)
+    in_cut = est.transform
+    slide_note = None
     if est.transform is not None:
         est.transform = crop_to_full(est.transform, oa, ob)
         est.src = est.src + ob
@@ -2084,11 +2097,20 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
             conf = float(est.confidence) if by_structure else _confidence(n_inl, v, est.transform.min_samples)
             message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure,
                                       scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched) or est.one_sided
+            if not message and opts.max_slide is not None:
+                # On the search's maps (cut, and despeckled as the search saw them).
+                slid = slide(ca, cb, in_cut, tolerance=opts.wall_tolerance, fraction=_SLIDE_FRACTION,
+                             verification=est.verification)
+                if slid is not None:
+                    slide_note = {"px": round(slid.distance, 1), "kept": round(slid.kept, 4)}
+                    message = _slide_reason(slid, opts)
         else:
             conf = float(est.confidence or 0.0)
             message = "" if est.success else (est.message or "declined by the method's own rule")
     success = est.transform is not None and not message
     details = dict(est.details)
+    if slide_note is not None:
+        details["slide"] = slide_note
     if spec.order_free:
         details["searched_from"] = "a"
     details["features_capped"] = bool(fa.capped or fb.capped)
@@ -2192,6 +2214,9 @@ def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: flo
 
 
 _CROP_MARGIN = 8
+#: How far :attr:`AlignOptions.max_slide`'s test slides b, as a fraction of the square
+#: root of the overlap's cells.
+_SLIDE_FRACTION = 0.15
 #: Hypotheses refined against the maps (the best by their unrefined score).
 _REFINE_TOP = 3
 #: The keypoints-first stage of the hybrid method ends the search only when the full
@@ -2422,6 +2447,15 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
         return f"{reason}; nor does its scale agree with the maps' resolutions ({scale_off:.0%} off)"
     return (f"declined: the scale disagrees with the maps' resolutions by {scale_off:.0%} "
             f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
+
+
+def _slide_reason(slid: Slide, opts: AlignOptions) -> str:
+    """Why a pose so slid (:func:`gridmerge.verify.slide`) is declined ("" when it is
+    not: :attr:`AlignOptions.max_slide`)."""
+    if opts.max_slide is None or slid.kept <= opts.max_slide:
+        return ""
+    return (f"declined: the walls do not fix the pose: slid {slid.distance:.0f} px along them either way, "
+            f"its walls still agree {slid.kept:.0%} as well (at most {opts.max_slide:.0%})")
 
 
 def _wall_shares(v: Verification) -> tuple[float, float] | None:

@@ -37,7 +37,8 @@ import numpy as np
 from .grid import FREE_THRESHOLD, OCCUPIED_THRESHOLD, OccupancyGrid
 from .transforms import AffineTransform
 
-__all__ = ["Verification", "verify", "acceptance_index", "WallScorer", "QuickScore", "despeckle", "chance_wall_agreement"]
+__all__ = ["Verification", "verify", "acceptance_index", "WallScorer", "QuickScore", "despeckle", "chance_wall_agreement",
+           "Slide", "slide"]
 
 
 @dataclass(frozen=True)
@@ -262,6 +263,106 @@ def verify(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, to
     smaller = min(float(np.count_nonzero(a.known)), known_b_in_a)
     fraction = overlap / smaller if smaller > 0 else 0.0
     return Verification(index, agr, dis, wall, overlap, min(1.0, fraction), na, nb, ma, mb)
+
+
+@dataclass(frozen=True)
+class Slide:
+    """How firmly the maps' walls pin a pose along its weakest direction (:func:`slide`).
+
+    Attributes
+    ----------
+    direction : (2,) float array
+        Unit vector ``(x, y)`` in a's pixels: the direction along which the walls the two
+        maps share run (the weaker axis of their orientation tensor).
+    distance : float
+        How far (a's pixels) b was slid that way, each way.
+    kept : float
+        The lower of the two slid poses' wall agreement over the pose's own (0 when the
+        pose's walls do not agree at all): near 1, the walls that hold the pose hold it
+        as well slid along that line.
+    """
+
+    direction: np.ndarray
+    distance: float
+    kept: float
+
+
+def _wall_axis(mask: np.ndarray) -> np.ndarray | None:
+    """The unit ``(x, y)`` direction along which the walls of ``mask`` (``(H, W)`` bool)
+    mostly run: the eigenvector of the smaller eigenvalue of the summed, per-cell
+    normalised gradient tensor of the smoothed mask; ``None`` without walls."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return None
+    pad = 8  # beyond the blur's and the gradient's reach
+    mask = np.pad(mask[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1], pad)
+    m = cv2.GaussianBlur(mask.view(np.uint8).astype(np.float32), (0, 0), 1.5)
+    gx = cv2.Sobel(m, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(m, cv2.CV_32F, 0, 1, ksize=3)
+    near = _near(mask, 2.0)
+    gx, gy = gx[near].astype(float), gy[near].astype(float)
+    norm = gx * gx + gy * gy
+    keep = norm > 1e-12
+    if not keep.any():
+        return None
+    gx, gy, norm = gx[keep], gy[keep], norm[keep]
+    tensor = np.array([[np.sum(gx * gx / norm), np.sum(gx * gy / norm)],
+                       [np.sum(gx * gy / norm), np.sum(gy * gy / norm)]])
+    _, vectors = np.linalg.eigh(tensor)
+    return vectors[:, 0]
+
+
+def slide(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, tolerance: float = 2.0,
+          fraction: float = 0.15, verification: Verification | None = None) -> Slide | None:
+    """Slide ``b``, moved by ``transform`` (b pixels -> a pixels), along the walls the two
+    maps share, ``fraction`` of the overlap's size (the square root of its cells) each
+    way, and measure how much of its wall agreement it keeps.
+
+    A pose the maps fix drops on both sides: its walls cross, or its rooms' walls close
+    on the other map's free space. A pose held by one straight wall, or a corridor, with
+    the rest of b on a's unknown cells agrees as well slid along it: the maps do not say
+    where along that line b lies, and a fit of two different places looks like that.
+
+    ``verification``: ``verify(a, b, transform, tolerance=tolerance)`` when already
+    known. Returns ``None`` when the pose shares no agreeing wall.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from gridmerge.grid import OccupancyGrid
+    >>> from gridmerge.transforms import SimilarityTransform
+    >>> d = np.full((80, 80), np.nan); d[20:60, 10:70] = 0.0; d[40, 10:70] = 1.0
+    >>> line = OccupancyGrid(d)  # one wall through a band of free space
+    >>> round(slide(line, line, SimilarityTransform()).kept, 2)
+    1.0
+    >>> d = np.full((80, 80), np.nan); d[15:65, 15:65] = 0.0
+    >>> d[15:65, [15, 64]] = 1.0; d[[15, 64], 15:65] = 1.0
+    >>> room = OccupancyGrid(d)  # a closed room: slid, its walls across the slide part
+    >>> round(slide(room, room, SimilarityTransform()).kept, 2)
+    0.67
+    """
+    base = verification if verification is not None else verify(a, b, transform, tolerance=tolerance)
+    if not (math.isfinite(base.wall_agreement) and base.wall_agreement > 0 and base.overlap_cells):
+        return None
+    x0, y0, x1, y1 = _footprint(transform.params, b.shape, a.shape)
+    shifted = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ transform.params
+    sub = a.data[y0:y1, x0:x1]
+    warped = _warp_nearest(b.data, shifted, sub.shape)
+    with np.errstate(invalid="ignore"):
+        both = ~np.isnan(sub) & ~np.isnan(warped)
+        ao, bo = (sub > OCCUPIED_THRESHOLD) & both, (warped > OCCUPIED_THRESHOLD) & both
+    shared = (ao & _near(bo, tolerance)) | (bo & _near(ao, tolerance))
+    axis = _wall_axis(shared)
+    if axis is None:
+        return None
+    distance = float(fraction) * math.sqrt(base.overlap_cells)
+    kept = []
+    for sign in (1.0, -1.0):
+        move = np.eye(3)
+        move[:2, 2] = sign * distance * axis
+        v = verify(a, b, type(transform)(move @ transform.params), tolerance=tolerance)
+        kept.append(v.wall_agreement / base.wall_agreement if math.isfinite(v.wall_agreement) else 0.0)
+    return Slide(axis, distance, float(min(kept)))
 
 
 @dataclass(frozen=True)
