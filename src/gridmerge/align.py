@@ -2455,7 +2455,7 @@ def _slide_reason(slid: Slide, opts: AlignOptions) -> str:
     if opts.max_slide is None or slid.kept <= opts.max_slide:
         return ""
     return (f"declined: the walls do not fix the pose: slid {slid.distance:.0f} px along them either way, "
-            f"its walls still agree {slid.kept:.0%} as well (at most {opts.max_slide:.0%})")
+            f"it keeps {slid.kept:.0%} of its wall agreement (at most {opts.max_slide:.0%})")
 
 
 def _wall_shares(v: Verification) -> tuple[float, float] | None:

@@ -319,6 +319,8 @@ BAD_INPUT = [
     ("min-confidence-negative", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--min-confidence", "-0.1"], "0 to 1"),
     ("one-sided-not-a-number", _nothing, ["align", "a.yaml", "b.yaml", "--one-sided-confidence", "high"], "high"),
     ("min-confidence-nan", _nothing, ["align", "a.yaml", "b.yaml", "--min-confidence", "nan"], "0 to 1"),
+    ("max-slide-above-one", _nothing, ["align", "a.yaml", "b.yaml", "--max-slide", "2"], "0 to 1"),
+    ("max-slide-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--max-slide", "0.5"], "own rule"),
     # The baselines decline by their authors' rules: a threshold would be silently ignored.
     ("threshold-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--min-confidence", "0.4"], "own rule"),
     ("merge-threshold-with-baseline", _nothing,
@@ -366,6 +368,7 @@ def runs(sample_maps, tmp_path_factory):
     runner.add("align-sift", ["align", "a.yaml", "b.yaml", "--json", "--method", "sift"], sample_maps.folder)
     runner.add("align-sift-strict", ["align", "a.yaml", "b.yaml", "--json", "--method", "sift", "--min-confidence", "1"], sample_maps.folder)
     runner.add("merge-sift-strict", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--method", "sift", "--min-confidence", "1"], folder("merge-sift-strict"))
+    runner.add("align-slide-strict", ["align", "a.yaml", "b.yaml", "--json", "--max-slide", "0"], sample_maps.folder)
     runner.add("align-negative-any-confidence", ["align", "neg_a.yaml", "neg_b.yaml", "--json", "--min-confidence", "0", "--one-sided-confidence", "0"],
                sample_maps.folder)
     f = folder("merge-unknown", "a")
@@ -510,6 +513,18 @@ def test_min_confidence_moves_the_decline_threshold(runs):
     merged = runs.get("merge-sift-strict")
     assert merged.result.returncode == 1, describe(merged.result)
     assert not (merged.cwd / "out.yaml").exists() and not (merged.cwd / "out.pgm").exists()
+
+
+def test_max_slide_declines_a_pose_its_walls_do_not_fix_as_asked(runs):
+    # The default pose of the sample pair records how much of its wall agreement it keeps
+    # slid along its walls; asked to keep none, the same candidate is declined, saying why.
+    default = parse_json(runs.get("align-json").result)
+    assert default["success"] and 0.0 < default["details"]["slide"]["kept"] <= 0.75
+    proc = runs.get("align-slide-strict").result
+    assert proc.returncode == 1, describe(proc)
+    strict = parse_json(proc)
+    assert not strict["success"] and strict["candidate"] == default["candidate"]
+    assert strict["message"].startswith("declined: the walls do not fix the pose") and "at most 0%" in strict["message"]
 
 
 def test_no_threshold_merges_maps_of_two_places(runs):

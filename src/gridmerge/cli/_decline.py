@@ -1,5 +1,5 @@
-"""The decline thresholds on the command line: ``--min-confidence`` and
-``--one-sided-confidence``, shared by ``align``, ``merge`` and ``bench``.
+"""The decline thresholds on the command line: ``--min-confidence``,
+``--one-sided-confidence`` and ``--max-slide``, shared by ``align``, ``merge`` and ``bench``.
 
 They set :class:`gridmerge.align.AlignOptions` fields of gridmerge's own methods (those
 whose success the verification decides, :attr:`gridmerge.align.Method.verified`). The
@@ -19,6 +19,7 @@ __all__ = ["FLAGS", "confidence", "help_text", "overrides"]
 FLAGS = {
     "--min-confidence": "min_confidence",
     "--one-sided-confidence": "one_sided_confidence",
+    "--max-slide": "max_slide",
 }
 
 _HELP = {
@@ -26,6 +27,9 @@ _HELP = {
     "pairs and risks wrong merges: docs/benchmarks.md, 'The decline threshold'",
     "one_sided_confidence": "a pose below C is searched again from the other map's side, and declined below C if "
     "that search does not find it too, 0 to 1 (default {d}; maps of different places fit by chance from one side)",
+    "max_slide": "decline a pose that the walls do not fix: slid along the walls the maps share, either way, it keeps "
+    "more than C of its wall agreement, 0 to 1 (default {d}; one straight wall or corridor holds a pose along it "
+    "but not where on it); 1 declines only poses that both slid poses beat",
 }
 
 
