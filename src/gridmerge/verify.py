@@ -360,7 +360,7 @@ def slide(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, tol
     for sign in (1.0, -1.0):
         move = np.eye(3)
         move[:2, 2] = sign * distance * axis
-        v = verify(a, b, type(transform)(move @ transform.params), tolerance=tolerance)
+        v = verify(a, b, AffineTransform(move @ transform.params), tolerance=tolerance)
         kept.append(v.wall_agreement / base.wall_agreement if math.isfinite(v.wall_agreement) else 0.0)
     return Slide(axis, distance, float(min(kept)))
 
