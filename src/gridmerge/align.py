@@ -2456,8 +2456,8 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
 
 def _slide_reason(slid: Slide, opts: AlignOptions) -> str:
     """Why a pose so slid (:func:`gridmerge.verify.slide`) is declined ("" when it is
-    not: :attr:`AlignOptions.max_slide`)."""
-    if opts.max_slide is None or slid.kept <= opts.max_slide:
+    not: :attr:`AlignOptions.max_slide`, which is set)."""
+    if slid.kept <= opts.max_slide:
         return ""
     return (f"declined: the walls do not fix the pose: slid {slid.distance:.0f} px along them either way, "
             f"it keeps {slid.kept:.0%} of its wall agreement (at most {opts.max_slide:.0%})")

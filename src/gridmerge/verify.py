@@ -228,6 +228,23 @@ def _warp_nearest(data: np.ndarray, matrix: np.ndarray, shape) -> np.ndarray:
     )
 
 
+def _overlap_cells(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform):
+    """``(both, a_occupied, a_free, b_occupied, b_free)``: ``(h, w)`` bool masks over the
+    box of a's pixels that b's image covers when moved by ``transform`` (b pixels -> a
+    pixels): the cells both maps know, and each map's occupied and free cells among them
+    (b's moved into a's cells, nearest neighbour)."""
+    # Only the part of a that b's image covers can overlap: work on that box.
+    x0, y0, x1, y1 = _footprint(transform.params, b.shape, a.shape)
+    shifted = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ transform.params
+    sub = a.data[y0:y1, x0:x1]
+    warped = _warp_nearest(b.data, shifted, sub.shape)
+    both = ~np.isnan(sub) & ~np.isnan(warped)
+    with np.errstate(invalid="ignore"):
+        ao, af = (sub > OCCUPIED_THRESHOLD) & both, (sub < FREE_THRESHOLD) & both
+        bo, bf = (warped > OCCUPIED_THRESHOLD) & both, (warped < FREE_THRESHOLD) & both
+    return both, ao, af, bo, bf
+
+
 def verify(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, tolerance: float = 2.0) -> Verification:
     """Score how well ``b``, moved by ``transform`` (b pixels -> a pixels), agrees with ``a``.
 
@@ -238,17 +255,8 @@ def verify(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, to
     tolerance : float
         Distance (a's cells) within which two walls count as the same wall.
     """
-    # Only the part of a that b's image covers can overlap: work on that box.
-    x0, y0, x1, y1 = _footprint(transform.params, b.shape, a.shape)
-    shifted = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ transform.params
-    sub = a.data[y0:y1, x0:x1]
-    warped = _warp_nearest(b.data, shifted, sub.shape)
-    both = ~np.isnan(sub) & ~np.isnan(warped)
+    both, ao, af, bo, bf = _overlap_cells(a, b, transform)
     overlap = int(np.count_nonzero(both))
-    # Birk & Carpin's counts and the walls, over the cells both know.
-    with np.errstate(invalid="ignore"):
-        ao, af = (sub > OCCUPIED_THRESHOLD) & both, (sub < FREE_THRESHOLD) & both
-        bo, bf = (warped > OCCUPIED_THRESHOLD) & both, (warped < FREE_THRESHOLD) & both
     agr = int(np.count_nonzero(ao & bo) + np.count_nonzero(af & bf))
     dis = int(np.count_nonzero(ao & bf) + np.count_nonzero(af & bo))
     index = agr / (agr + dis) if agr + dis else math.nan
@@ -344,13 +352,7 @@ def slide(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, tol
     base = verification if verification is not None else verify(a, b, transform, tolerance=tolerance)
     if not (math.isfinite(base.wall_agreement) and base.wall_agreement > 0 and base.overlap_cells):
         return None
-    x0, y0, x1, y1 = _footprint(transform.params, b.shape, a.shape)
-    shifted = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ transform.params
-    sub = a.data[y0:y1, x0:x1]
-    warped = _warp_nearest(b.data, shifted, sub.shape)
-    with np.errstate(invalid="ignore"):
-        both = ~np.isnan(sub) & ~np.isnan(warped)
-        ao, bo = (sub > OCCUPIED_THRESHOLD) & both, (warped > OCCUPIED_THRESHOLD) & both
+    _, ao, _, bo, _ = _overlap_cells(a, b, transform)
     shared = (ao & _near(bo, tolerance)) | (bo & _near(ao, tolerance))
     axis = _wall_axis(shared)
     if axis is None:
