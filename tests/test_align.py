@@ -3,6 +3,7 @@ import json
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
@@ -1183,10 +1184,13 @@ def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
     a, b = fleet.maps[5], fleet.maps[6]
     assert not align(a, b, rng=0).success
     monkeypatch.setattr(align_module, "_POLISH_REACH", 30.0)
-    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None)
+    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None, max_crossing=None)
     assert r.success and corner_error(r.transform, fleet.relative(5, 6), b.shape) > 100
-    r = align(a, b, rng=0, search_from="a")
+    r = align(a, b, rng=0, search_from="a", max_crossing=None)
     assert not r.success and "found from one map's side only" in r.message
+    # The slid pose's walls cross robot 6's rooms too (38 % of 2397 cells).
+    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None)
+    assert not r.success and "stand inside the other map's open space" in r.message
 
 
 def _one_side(transform, confidence, source="walls"):
@@ -1594,3 +1598,43 @@ def test_a_taken_pose_records_how_its_walls_fix_it_and_max_slide_declines():
     free = align(a, b, max_slide=None)
     assert free.success and "slide" not in free.details
     np.testing.assert_allclose(free.transform.params, r.transform.params)
+
+
+def _furnished(b, rng, pieces: int = 6):
+    """``b`` with ``pieces`` 13-cell walls put across its open space (deeper than 8 cells
+    inside it): what the other robot's map has never seen."""
+    d = b.data.copy()
+    free = np.nan_to_num(d, nan=1.0) < 0.2
+    depth = cv2.distanceTransform(free.view(np.uint8), cv2.DIST_L2, 5)
+    ys, xs = np.nonzero(depth > 8)
+    for k in rng.choice(len(ys), pieces, replace=False):
+        d[ys[k], max(0, xs[k] - 6) : xs[k] + 7] = 1.0
+    return OccupancyGrid(d, resolution=b.resolution, origin=b.origin)
+
+
+def test_a_taken_pose_records_walls_across_the_other_maps_rooms_and_max_crossing_declines():
+    """Every pose otherwise taken counts the overlap's walls standing deep inside the other
+    map's open space (:attr:`AlignOptions.max_crossing`): a share above the limit
+    declines a pose that rests on fewer than 3000 wall cells, saying why."""
+    a, b, truth = samples.robot_pair(1, shape=(200, 260))
+    b = _furnished(b, np.random.default_rng(0))
+    r = align(a, b)
+    assert r.success and corner_error(r.transform, truth, b.shape) < 2.0
+    share, walls = r.details["crossing"]["share"], r.details["crossing"]["walls"]
+    assert 0.0 < share <= 0.2 and 0 < walls < 3000
+    strict = align(a, b, max_crossing=share / 2)
+    assert not strict.success and "stand inside the other map's open space" in strict.message
+    np.testing.assert_allclose(strict.candidate.params, r.transform.params)
+    free = align(a, b, max_crossing=None)
+    assert free.success and "crossing" not in free.details
+    np.testing.assert_allclose(free.transform.params, r.transform.params)
+
+
+def test_max_crossing_does_not_judge_a_pose_on_many_walls():
+    # Real maps of one building differ (furniture moved, doors, glass): a pose resting on
+    # 3000 wall cells or more is not judged by its crossing walls.
+    a, b, truth = samples.robot_pair(3, shape=(200, 260))
+    b = _furnished(b, np.random.default_rng(0))
+    r = align(a, b, max_crossing=0.0)
+    assert r.success and r.details["crossing"]["walls"] >= 3000 and r.details["crossing"]["share"] > 0.0
+    assert corner_error(r.transform, truth, b.shape) < 2.0

@@ -258,3 +258,56 @@ def test_slide_without_agreeing_walls_is_none():
     assert slide(OccupancyGrid(a), OccupancyGrid(b), SimilarityTransform(), tolerance=2.0) is None
     empty = OccupancyGrid(np.zeros((40, 40)))
     assert slide(empty, empty, SimilarityTransform()) is None
+
+
+from gridmerge.verify import crossing  # noqa: E402
+
+
+def _room(size: int = 80, across=None) -> np.ndarray:
+    """A closed room of free cells, walls round it; ``across``: a row with a wall from
+    column 20 to 60 (cells)."""
+    d = np.zeros((size, size))
+    d[[0, -1], :] = 1.0
+    d[:, [0, -1]] = 1.0
+    if across is not None:
+        d[across, 20:60] = 1.0
+    return d
+
+
+def test_crossing_counts_walls_deep_in_the_other_maps_open_space():
+    plain, crossed = OccupancyGrid(_room()), OccupancyGrid(_room(across=40))
+    c = crossing(plain, crossed, SimilarityTransform())
+    assert c.deep == 40 and c.walls == 2 * 316 + 40
+    assert c.share == pytest.approx(40 / c.walls)
+    # Either way round: a's wall across b's room counts alike.
+    assert crossing(crossed, plain, SimilarityTransform()) == c
+
+
+def test_crossing_ignores_walls_beside_the_other_maps_walls_or_unknown():
+    # A wall 3 cells inside the room (a bent map, a thick wall) is not deep.
+    beside = _room()
+    beside[3, 10:70] = 1.0
+    assert crossing(OccupancyGrid(_room()), OccupancyGrid(beside), SimilarityTransform()).deep == 0
+    # Nor is one next to what the other map does not know: it may not have seen there.
+    unseen = _room()
+    unseen[30:50, 30:50] = np.nan
+    c = crossing(OccupancyGrid(unseen), OccupancyGrid(_room(across=52)), SimilarityTransform())
+    # Row 52 passes 3 cells below the unknown square (columns 30-49): of columns 20-59,
+    # only 20-25 and 54-59 lie more than 5 cells from it.
+    assert c.deep == 12
+    assert crossing(OccupancyGrid(_room()), OccupancyGrid(_room(across=52)), SimilarityTransform()).deep == 40
+
+
+def test_crossing_is_counted_in_the_finer_maps_cells():
+    fine = OccupancyGrid(_room(across=40))
+    coarse = OccupancyGrid(cv2.resize(_room(), (40, 40), interpolation=cv2.INTER_NEAREST))
+    two = SimilarityTransform(scale=2.0, translation=(0.5, 0.5))  # coarse pixels -> fine pixels
+    c = crossing(fine, coarse, two)
+    assert c == crossing(coarse, fine, two.inverse)
+    assert c.deep == 40  # the fine map's wall across, in its own cells
+
+
+def test_crossing_without_walls_has_no_share():
+    empty = OccupancyGrid(np.zeros((30, 30)))
+    c = crossing(empty, empty, SimilarityTransform())
+    assert (c.walls, c.deep) == (0, 0) and math.isnan(c.share)

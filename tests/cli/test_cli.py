@@ -321,6 +321,8 @@ BAD_INPUT = [
     ("min-confidence-nan", _nothing, ["align", "a.yaml", "b.yaml", "--min-confidence", "nan"], "0 to 1"),
     ("max-slide-above-one", _nothing, ["align", "a.yaml", "b.yaml", "--max-slide", "2"], "0 to 1"),
     ("max-slide-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--max-slide", "0.5"], "own rule"),
+    ("max-crossing-negative", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--max-crossing", "-1"], "0 to 1"),
+    ("max-crossing-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "hough", "--max-crossing", "0.5"], "own rule"),
     # The baselines decline by their authors' rules: a threshold would be silently ignored.
     ("threshold-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--min-confidence", "0.4"], "own rule"),
     ("merge-threshold-with-baseline", _nothing,
@@ -369,6 +371,7 @@ def runs(sample_maps, tmp_path_factory):
     runner.add("align-sift-strict", ["align", "a.yaml", "b.yaml", "--json", "--method", "sift", "--min-confidence", "1"], sample_maps.folder)
     runner.add("merge-sift-strict", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--method", "sift", "--min-confidence", "1"], folder("merge-sift-strict"))
     runner.add("align-slide-strict", ["align", "a.yaml", "b.yaml", "--json", "--max-slide", "0"], sample_maps.folder)
+    runner.add("align-crossing-strict", ["align", "a.yaml", "b.yaml", "--json", "--max-crossing", "0"], sample_maps.folder)
     runner.add("align-negative-any-confidence", ["align", "neg_a.yaml", "neg_b.yaml", "--json", "--min-confidence", "0", "--one-sided-confidence", "0"],
                sample_maps.folder)
     f = folder("merge-unknown", "a")
@@ -525,6 +528,18 @@ def test_max_slide_declines_a_pose_its_walls_do_not_fix_as_asked(runs):
     strict = parse_json(proc)
     assert not strict["success"] and strict["candidate"] == default["candidate"]
     assert strict["message"].startswith("declined: the walls do not fix the pose") and "at most 0%" in strict["message"]
+
+
+def test_max_crossing_is_recorded_and_spares_a_pose_on_many_walls(runs):
+    # The sample pair's pose rests on thousands of wall cells, none across the other
+    # map's rooms: asked to allow no crossing wall at all, it is merged the same.
+    default = parse_json(runs.get("align-json").result)
+    assert default["success"] and default["details"]["crossing"]["walls"] >= 3000
+    proc = runs.get("align-crossing-strict").result
+    assert proc.returncode == 0, describe(proc)
+    strict = parse_json(proc)
+    assert strict["success"] and strict["transform"] == default["transform"]
+    assert strict["details"]["crossing"] == default["details"]["crossing"]
 
 
 def test_no_threshold_merges_maps_of_two_places(runs):

@@ -1,5 +1,5 @@
 """The decline thresholds on the command line: ``--min-confidence``,
-``--one-sided-confidence`` and ``--max-slide``, shared by ``align``, ``merge`` and ``bench``.
+``--one-sided-confidence``, ``--max-slide`` and ``--max-crossing``, shared by ``align``, ``merge`` and ``bench``.
 
 They set :class:`gridmerge.align.AlignOptions` fields of gridmerge's own methods (those
 whose success the verification decides, :attr:`gridmerge.align.Method.verified`). The
@@ -20,6 +20,7 @@ FLAGS = {
     "--min-confidence": "min_confidence",
     "--one-sided-confidence": "one_sided_confidence",
     "--max-slide": "max_slide",
+    "--max-crossing": "max_crossing",
 }
 
 _HELP = {
@@ -30,6 +31,8 @@ _HELP = {
     "max_slide": "decline a pose that the walls do not fix: slid along the walls the maps share, either way, it keeps "
     "more than C of its wall agreement, 0 to 1 (default {d}; one straight wall or corridor holds a pose along it "
     "but not where on it); 1 declines only poses that both slid poses beat",
+    "max_crossing": "decline a pose resting on fewer than 3000 overlap wall cells when more than C of them stand "
+    "inside the other map's open space, 0 to 1 (default {d}; maps of two places laid room on room); 1 turns it off",
 }
 
 

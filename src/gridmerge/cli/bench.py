@@ -4,7 +4,8 @@
 
     gridmerge bench [run] [--dataset simulated|halmstad|paper|all ...] [--methods sift,ransac,...]
                           [--n N] [--seed S] [--quick] [--out DIR] [--data DIR] [--progress] [--force]
-                          [--min-confidence C] [--one-sided-confidence C] [--max-slide C] [--source-map MAP ...]
+                          [--min-confidence C] [--one-sided-confidence C] [--max-slide C] [--max-crossing C]
+                          [--source-map MAP ...]
     gridmerge bench compare RUN1 RUN2
     gridmerge bench case RUN CASE_ID --out DIR [--method M] [--maps DIR]
 

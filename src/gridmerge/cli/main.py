@@ -116,7 +116,7 @@ def _add_decline(parser: argparse.ArgumentParser) -> None:
 
 def _decline_options(args) -> dict:
     """AlignOptions of the decline thresholds (--min-confidence, --one-sided-confidence,
-    --max-slide); a usage error with a method that declines by its own rule."""
+    --max-slide, --max-crossing); a usage error with a method that declines by its own rule."""
     given = _decline.overrides({name: getattr(args, name, None) for name in _decline.FLAGS.values()})
     if given and not METHODS[args.method].verified:
         flags = [f for f, name in _decline.FLAGS.items() if name in given]
