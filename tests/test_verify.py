@@ -307,6 +307,12 @@ def test_crossing_is_counted_in_the_finer_maps_cells():
     assert c.deep == 40  # the fine map's wall across, in its own cells
 
 
+def test_crossing_beyond_max_walls_is_not_searched():
+    c = crossing(OccupancyGrid(_room()), OccupancyGrid(_room(across=40)), SimilarityTransform(), max_walls=600)
+    assert (c.walls, c.deep) == (672, None) and math.isnan(c.share)
+    assert crossing(OccupancyGrid(_room()), OccupancyGrid(_room(across=40)), SimilarityTransform(), max_walls=673).deep == 40
+
+
 def test_crossing_without_walls_has_no_share():
     empty = OccupancyGrid(np.zeros((30, 30)))
     c = crossing(empty, empty, SimilarityTransform())

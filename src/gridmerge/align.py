@@ -187,7 +187,8 @@ class AlignOptions:
         together) when more than this share of them stand inside the other map's open
         space: deeper than 5 of a's cells from any of its walls or unknown cells
         (:func:`gridmerge.verify.crossing`; ``result.details["crossing"]`` records
-        ``share`` and ``walls`` for every pose that reaches the test). Maps of two
+        ``share`` and ``walls`` for every pose that reaches the test; ``share`` is
+        ``None`` on 3000 wall cells or more, not judged). Maps of two
         places fitted room on room have walls across each other's rooms. Measured on
         the stored runs' 1964 taken poses: every pose of simulated and HM3D maps above
         0.2 was wrong (6 of them, 0.25-0.39), the right ones reached 0.17; Halmstad's
@@ -2117,8 +2118,9 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
                                       scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched) or est.one_sided
             if not message and opts.max_crossing is not None:
                 # On the search's maps (cut, and despeckled as the search saw them).
-                crossed = crossing(ca, cb, in_cut, depth=_CROSSING_DEPTH)
-                crossing_note = {"share": round(crossed.share, 4) if crossed.walls else None, "walls": crossed.walls}
+                crossed = crossing(ca, cb, in_cut, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
+                crossing_note = {"share": round(crossed.share, 4) if crossed.deep is not None and crossed.walls else None,
+                                 "walls": crossed.walls}
                 message = _crossing_reason(crossed, opts)
             if not message and opts.max_slide is not None:
                 slid = slide(ca, cb, in_cut, tolerance=opts.wall_tolerance, fraction=_SLIDE_FRACTION,
@@ -2484,7 +2486,7 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
 def _crossing_reason(crossed: Crossing, opts: AlignOptions) -> str:
     """Why a pose whose walls cross the other map's rooms so (:func:`gridmerge.verify.crossing`)
     is declined ("" when it is not: :attr:`AlignOptions.max_crossing`, which is set)."""
-    if crossed.walls >= _CROSSING_EVIDENCE or not crossed.share > opts.max_crossing:
+    if crossed.deep is None or crossed.walls >= _CROSSING_EVIDENCE or not crossed.share > opts.max_crossing:
         return ""
     return (f"declined: {crossed.share:.0%} of the overlap's walls ({crossed.deep} of {crossed.walls} cells) "
             f"stand inside the other map's open space, at most {opts.max_crossing:.0%} on fewer than "

@@ -383,20 +383,21 @@ class Crossing:
     walls : int
         Occupied cells of both maps where both know the cell (counted in the finer map's
         cells, the other moved into them).
-    deep : int
+    deep : int or None
         Of those, the cells farther than ``depth`` cells from anything but the
         other map's free space (its walls, its unknown): walls across the other map's
         rooms, not beside its walls.
     share : float
-        ``deep / walls`` (NaN without walls).
+        ``deep / walls`` (NaN without walls, or when ``deep`` was not counted).
     """
 
     walls: int
-    deep: int
+    deep: int | None
     share: float
 
 
-def crossing(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, depth: float = 5.0) -> Crossing:
+def crossing(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, depth: float = 5.0,
+             max_walls: int | None = None) -> Crossing:
     """Count the overlap's walls that cross the other map's open space, ``b`` moved by
     ``transform`` (b pixels -> a pixels).
 
@@ -408,7 +409,9 @@ def crossing(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, 
 
     It is counted in the cells of the map with the finer cells (a's when the transform
     does not shrink b, b's otherwise), the other moved into them: both ways round give
-    the same, and ``depth`` is that map's cells.
+    the same, and ``depth`` is that map's cells. With ``max_walls``, an overlap holding
+    that many wall cells or more is not searched for deep ones (``deep`` is ``None``,
+    ``share`` NaN): on large maps that search costs most.
 
     Examples
     --------
@@ -432,6 +435,8 @@ def crossing(a: OccupancyGrid, b: OccupancyGrid, transform: AffineTransform, *, 
     walls = int(np.count_nonzero(ao) + np.count_nonzero(bo))
     if not walls:
         return Crossing(0, 0, math.nan)
+    if max_walls is not None and walls >= max_walls:
+        return Crossing(walls, None, math.nan)
     deep = int(np.count_nonzero(bo & (_free_depth(af) > depth)) + np.count_nonzero(ao & (_free_depth(bf) > depth)))
     return Crossing(walls, deep, deep / walls)
 
