@@ -184,17 +184,20 @@ class AlignOptions:
         ``--max-slide``).
     max_crossing : float or None
         Decline a pose resting on fewer than 3000 wall cells in the overlap (both maps'
-        together) when more than this share of them stand inside the other map's open
-        space: deeper than 5 of a's cells from any of its walls or unknown cells
-        (:func:`gridmerge.verify.crossing`; ``result.details["crossing"]`` records
-        ``share`` and ``walls`` for every pose that reaches the test; ``share`` is
-        ``None`` on 3000 wall cells or more, not judged). Maps of two
-        places fitted room on room have walls across each other's rooms. Measured on
-        the stored runs' 1964 taken poses: every pose of simulated and HM3D maps above
-        0.2 was wrong (6 of them, 0.25-0.39), the right ones reached 0.17; Halmstad's
-        right poses reach 0.38 (real maps differ: furniture, doors, glass), all on 8 000
-        wall cells or more. docs/benchmarks.md, forty-fourth session. ``None`` skips the
-        test (CLI ``--max-crossing``).
+        together, counted in the finer map's cells) when more than this share of them
+        stand inside the other map's open space: deeper than 5 cells from any of its
+        walls or unknown cells (:func:`gridmerge.verify.crossing`;
+        ``result.details["crossing"]`` records ``share`` and ``walls`` for every pose
+        that reaches the test; ``share`` is ``None`` on 3000 wall cells or more, not
+        judged). Maps of two places fitted room on room have walls across each other's
+        rooms. Measured on the stored runs' 1964 taken poses: the six poses of simulated
+        and HM3D maps above 0.2 were all wrong (0.25-0.39), the right ones reached 0.17;
+        on HM3D seeds 25-26, never run before, it declined three false merges (0.20-0.34,
+        confidence 0.81-1.0) and one wrong merge. Real maps of one building differ
+        (furniture, doors, glass, bending): Halmstad's right poses reach 0.54, all on
+        8700 wall cells or more, and on windows cut from them (small real overlaps)
+        right poses reach 0.23, so a few such merges are lost. docs/benchmarks.md,
+        forty-fourth session. ``None`` skips the test (CLI ``--max-crossing``).
     max_keypoints : int
         Strongest keypoints kept per map (bounds time and memory).
     feature_pixels : int
@@ -2244,11 +2247,12 @@ _CROP_MARGIN = 8
 #: root of the overlap's cells.
 _SLIDE_FRACTION = 0.15
 #: :attr:`AlignOptions.max_crossing`: a wall counts as crossing the other map's open
-#: space this many of a's cells inside it, and the test judges poses resting on fewer
-#: wall cells in the overlap than the evidence bound (both maps' together). Real maps of
-#: one building differ (furniture moved, doors, glass): Halmstad's right poses have up
-#: to 38 % of their walls so, but on 8 000 wall cells and more; a chance fit of that
-#: many cells does not happen. docs/benchmarks.md, forty-fourth session.
+#: space this many cells (the finer map's) inside it, and the test judges poses resting
+#: on fewer wall cells in the overlap than the evidence bound (both maps' together).
+#: Real maps of one building differ (furniture moved, doors, glass, bending): Halmstad's
+#: right poses have up to 54 % of their walls so, but on 8700 wall cells and more; the
+#: chance fits it declines rest on 119-860 (2400 in a test's procedural building).
+#: docs/benchmarks.md, forty-fourth session.
 _CROSSING_DEPTH = 5.0
 _CROSSING_EVIDENCE = 3000
 #: Hypotheses refined against the maps (the best by their unrefined score).
