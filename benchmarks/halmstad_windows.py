@@ -37,14 +37,10 @@ import numpy as np
 
 from gridmerge import OccupancyGrid, align
 from gridmerge.bench import runner
-from gridmerge.transforms import AffineTransform, corner_error
+from gridmerge.transforms import AffineTransform, SimilarityTransform, corner_error
 from gridmerge.verify import crossing, despeckle
 
 _SHIFT = 0.3
-
-
-def _shift(x: float, y: float) -> np.ndarray:
-    return np.array([[1.0, 0.0, x], [0.0, 1.0, y], [0.0, 0.0, 1.0]])
 
 
 def windows(a: OccupancyGrid, b: OccupancyGrid, pose: np.ndarray, size: int, count: int, rng: np.random.Generator):
@@ -67,7 +63,7 @@ def windows(a: OccupancyGrid, b: OccupancyGrid, pose: np.ndarray, size: int, cou
         sb = int(size / scale)
         by0, bx0 = int(max(0, c[1] - sb // 2)), int(max(0, c[0] - sb // 2))
         wb = OccupancyGrid(b.data[by0 : by0 + sb, bx0 : bx0 + sb].copy())
-        yield wa, wb, _shift(-x0, -y0) @ pose @ _shift(bx0, by0)
+        yield wa, wb, SimilarityTransform(translation=(-x0, -y0)).params @ pose @ SimilarityTransform(translation=(bx0, by0)).params
 
 
 def main(argv=None) -> int:

@@ -2122,8 +2122,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
             if not message and opts.max_crossing is not None:
                 # On the search's maps (cut, and despeckled as the search saw them).
                 crossed = crossing(ca, cb, in_cut, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
-                crossing_note = {"share": round(crossed.share, 4) if crossed.deep is not None and crossed.walls else None,
-                                 "walls": crossed.walls}
+                crossing_note = {"share": _finite_or_none(round(crossed.share, 4)), "walls": crossed.walls}
                 message = _crossing_reason(crossed, opts)
             if not message and opts.max_slide is not None:
                 slid = slide(ca, cb, in_cut, tolerance=opts.wall_tolerance, fraction=_SLIDE_FRACTION,
@@ -2490,7 +2489,7 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
 def _crossing_reason(crossed: Crossing, opts: AlignOptions) -> str:
     """Why a pose whose walls cross the other map's rooms so (:func:`gridmerge.verify.crossing`)
     is declined ("" when it is not: :attr:`AlignOptions.max_crossing`, which is set)."""
-    if crossed.deep is None or crossed.walls >= _CROSSING_EVIDENCE or not crossed.share > opts.max_crossing:
+    if crossed.walls >= _CROSSING_EVIDENCE or not crossed.share > opts.max_crossing:  # NaN: not counted
         return ""
     return (f"declined: {crossed.share:.0%} of the overlap's walls ({crossed.deep} of {crossed.walls} cells) "
             f"stand inside the other map's open space, at most {opts.max_crossing:.0%} on fewer than "
