@@ -533,3 +533,94 @@ def test_bad_source_maps_are_one_line_errors(map_files, tmp_path):
     with pytest.raises(GridMergeError, match="too small for a negative pair"):
         datasets.simulated(n=2, negatives=0.5, source_maps=[tiny])
     assert len(datasets.simulated(n=2, negatives=0.0, source_maps=[tiny])) == 2  # positives only: fine
+
+
+# --------------------------------------------------------------- halmstad-partial
+_SESSION_TURN = np.array([[math.cos(0.35), -math.sin(0.35), 180.0], [math.sin(0.35), math.cos(0.35), -60.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def two_sessions(tmp_path_factory):
+    """A data folder with one building mapped twice: ``SYN_02`` is ``SYN_01`` turned by
+    20 degrees and shifted (``_SESSION_TURN``: SYN_01's pixels -> SYN_02's), annotated
+    by 30 points spread over it and the exact fit."""
+    import json
+
+    from gridmerge import samples
+
+    root = tmp_path_factory.mktemp("sessions")
+    (root / "halmstad" / "SYN").mkdir(parents=True)
+    first = samples.building(5, (520, 700)).render()
+    second = cv2.warpAffine(first, _SESSION_TURN[:2], (820, 720), flags=cv2.INTER_NEAREST, borderValue=127)
+    cv2.imwrite(str(root / "halmstad" / "SYN" / "SYN_01.png"), first)
+    cv2.imwrite(str(root / "halmstad" / "SYN" / "SYN_02.png"), second)
+    rng = np.random.default_rng(4)
+    pa = np.column_stack([rng.uniform(20, 680, 30), rng.uniform(20, 500, 30)])
+    pb = pa @ _SESSION_TURN[:2, :2].T + _SESSION_TURN[:2, 2]
+    doc = {"pairs": [{"a": "SYN_01", "b": "SYN_02", "kind": "sensor", "points_a": pa.tolist(), "points_b": pb.tolist(),
+                      "fit_b_to_a": np.linalg.inv(_SESSION_TURN)[:2].tolist(), "fit_median_residual_px": 0.5}]}
+    (root / "halmstad" / "SYN_pairs.json").write_text(json.dumps(doc))
+    return root
+
+
+def test_partial_cases_carry_the_sessions_fit_into_the_robots_frames(two_sessions):
+    """Each robot maps its own session of the building; the truth is the annotation fit
+    carried into the two robots' frames: it lays b's walls on a's and b's scored points
+    on a's, and a case is the same whatever else is asked."""
+    from gridmerge.transforms import AffineTransform
+    from gridmerge.verify import verify
+
+    ds = datasets.halmstad_partial(n=5, seed=2, data_dir=two_sessions, negatives=0.4)
+    cases = list(ds)
+    assert [c.positive for c in cases] == [True, True, False, True, False]
+    assert [c.tier for c in cases] == ["easy", "medium", "negative", "hard", "negative"]
+    again = datasets.halmstad_partial(n=3, seed=2, data_dir=two_sessions, negatives=0.4)
+    assert all(_same(c, d) for c, d in zip(cases, again))
+    assert not _same(cases[0], datasets.halmstad_partial(n=1, seed=3, data_dir=two_sessions)[0])
+    for c in cases:
+        assert c.id.startswith("halmstad-partial/") and c.dataset == "halmstad-partial"
+        assert (c.meta["map_a"], c.meta["map_b"], c.meta["environment"], c.meta["source"]) == ("SYN_01", "SYN_02", "SYN", "halmstad:SYN")
+        assert c.a.known.sum() > 2000 and c.b.known.sum() > 2000
+    for c in (c for c in cases if c.positive):
+        m = c.meta
+        assert m["protocol"] == "halmstad" and m["threshold_px"] == 20.0
+        assert len(m["points_a"]) == len(m["points_b"]) >= datasets.PARTIAL_POINTS
+        assert halmstad_point_error(c.truth, m["points_a"], m["points_b"]) < 1.0
+        pa = np.asarray(m["points_a"])
+        assert (pa >= -10).all() and (pa[:, 0] < c.a.shape[1] + 10).all() and (pa[:, 1] < c.a.shape[0] + 10).all()
+        assert verify(c.a, c.b, AffineTransform(c.truth)).wall_agreement > 0.8
+        assert m["scale"] == pytest.approx(m["cell_scale"], rel=1e-9)  # the sessions share a cell size
+        assert 0.0 < m["overlap"] <= 1.0 and m["shared_walls"] > 0
+        assert judge(c.truth, c.truth, c.b.shape, positive=True, protocol=m)["success"]
+        assert not judge(np.eye(3), c.truth, c.b.shape, positive=True, protocol=m)["success"]
+    for c in (c for c in cases if not c.positive):
+        assert c.truth is None and c.meta["overlap"] == 0.0 and c.meta["negative_kind"] == "distant-parts"
+
+
+def test_partial_set_by_name_and_its_errors(two_sessions, tmp_path):
+    assert len(datasets.load("halmstad-partial", quick=True, data_dir=two_sessions)) == 3
+    assert len(datasets.load("halmstad-partial", n=7, data_dir=two_sessions)) == 7
+    swapped = datasets.load("halmstad-partial-swapped", n=1, data_dir=two_sessions)[0]
+    assert swapped.id == "halmstad-partial-swapped/SYN_02-SYN_01"
+    with pytest.raises(GridMergeError, match="radius"):
+        datasets.halmstad_partial(data_dir=two_sessions, radius=(300, 100))
+    with pytest.raises(GridMergeError, match="no annotated sensor pair"):
+        datasets.halmstad_partial(data_dir=tmp_path)
+    with pytest.raises(GridMergeError, match="data folder not found"):
+        datasets.halmstad_partial(data_dir=tmp_path / "nowhere")
+
+
+def test_partial_robots_keep_the_real_walls_thickness(shared_data):
+    """A robot's map of a real building keeps the walls as thick as its session drew them
+    (up to 3 cells behind the face its scanner hit), not only the face."""
+    ds = datasets.halmstad_partial(n=1, seed=0, data_dir=shared_data)
+    c = ds[0]
+    world, offset = datasets._session_world(str(shared_data), c.meta["environment"], c.meta["map_a"], datasets.SEE_THROUGH)
+    assert offset.shape == (2,)
+    views = world.viewpoints(np.random.default_rng(0))[:5]
+    face, thick = world.seen(views), world.seen(views, 3)
+    with np.errstate(invalid="ignore"):
+        assert (thick > 0.5).sum() > 1.5 * (face > 0.5).sum()
+        assert ((face > 0.5) <= (thick > 0.5)).all()  # the face is kept
+        assert ((thick > 0.5) <= ((face > 0.5) | (world.grid.data > 0.5))).all()  # only the session's own walls added
+    assert np.array_equal(np.isnan(face) & ~(thick > 0.5), np.isnan(thick))  # no free cell added

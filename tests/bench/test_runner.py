@@ -209,7 +209,7 @@ def test_all_skips_the_halmstad_pairs_when_the_folder_has_none(tmp_path):
 
     sets, notes = _resolve_datasets("all", seed=0, n=1, quick=True, data_dir=tmp_path)
     assert [ds.name for ds in sets] == ["simulated", "paper"]
-    assert notes == [f"halmstad skipped: no annotated maps in {tmp_path / 'halmstad'}"]
+    assert notes == [f"{name} skipped: no annotated maps in {tmp_path / 'halmstad'}" for name in ("halmstad", "halmstad-partial")]
 
 
 def test_dataset_names_choose_halmstad_environments(tmp_path, capsys):

@@ -1,6 +1,6 @@
 """Benchmark cases: pairs of maps with their ground truth (or none, for negatives).
 
-Three data sets:
+Four data sets:
 
 :func:`simulated`
     Two robots explore overlapping parts of a source map (a real map of the shared data,
@@ -13,6 +13,11 @@ Three data sets:
 :func:`halmstad`
     The annotated real pairs of the Halmstad data set (``../shared/data/halmstad``),
     scored with the data set's own protocol (see :mod:`gridmerge.bench.metrics`).
+:func:`halmstad_partial`
+    Two robots that explored part of a building each, in two real maps of it (Halmstad
+    sessions of one building, aligned by the annotations): small overlaps of maps that
+    bend and differ, scored with the Halmstad protocol on the annotated points in the
+    overlap, and negative pairs of two distant parts.
 :func:`paper`
     The paper's Table I experiment (:func:`gridmerge.samples.table1_pair`), with the
     paper's own estimate in ``meta`` for the report.
@@ -57,12 +62,16 @@ __all__ = [
     "TIERS",
     "SEE_THROUGH",
     "DATASETS",
+    "SEEDED",
     "PAPER_TABLE1",
     "default_data_dir",
     "resolve_data_dir",
     "simulated",
     "halmstad",
     "halmstad_environments",
+    "halmstad_partial",
+    "PARTIAL_RADIUS",
+    "PARTIAL_POINTS",
     "check_name",
     "paper",
     "load",
@@ -76,7 +85,11 @@ __all__ = [
 ]
 
 #: Names of the data sets :func:`load` knows.
-DATASETS = ("simulated", "halmstad", "paper")
+DATASETS = ("simulated", "halmstad", "halmstad-partial", "paper")
+
+#: The data sets whose cases are drawn from a seed, ``n`` of them (the others are fixed
+#: sets of pairs): a case id names another pair under another seed.
+SEEDED = ("simulated", "halmstad-partial")
 
 #: The paper's Table I: the true transform and the paper's estimate of it
 #: (rotation degrees, translation x and y in pixels, scale).
@@ -407,15 +420,27 @@ class _World:
             m[o] = True
         return m.reshape(H, W)
 
-    def seen(self, vps) -> np.ndarray:
-        """What a robot maps from ``vps``: free 0, occupied 1, unknown NaN (source frame)."""
+    def seen(self, vps, thick: int = 0) -> np.ndarray:
+        """What a robot maps from ``vps``: free 0, occupied 1, unknown NaN (source frame).
+
+        ``thick``: a wall keeps the source's wall cells up to that many cells behind the
+        face the scanner hit (a real map's walls as thick as its sensor drew them); 0,
+        the face only.
+        """
         H, W = self.grid.shape
         out = np.full(H * W, np.nan, dtype=np.float32)
         for vp in vps:
             f, o = self.view(vp)
             out[f] = 0.0
             out[o] = 1.0
-        return out.reshape(H, W)
+        out = out.reshape(H, W)
+        if thick > 0:
+            with np.errstate(invalid="ignore"):
+                hit = (out > 0.5).astype(np.uint8)
+                wall = self.grid.data > 0.5
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * thick + 1, 2 * thick + 1))
+            out[(cv2.dilate(hit, kernel) > 0) & wall] = 1.0
+        return out
 
 
 def _add_noise(data: np.ndarray, noise: float, rng: np.random.Generator) -> np.ndarray:
@@ -482,7 +507,8 @@ def _crop_box(known: np.ndarray, margins) -> tuple[int, int, int, int]:
     return x0, y0, x1, y1
 
 
-def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg: float, scale: float, noise: float):
+def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg: float, scale: float, noise: float,
+                    thick: int = 0):
     """The map a robot makes of ``wb`` from ``vps_b`` in its own frame: rotated by
     ``rotation_deg``, shifted, cells ``scale`` times the source's, cropped, with noise.
 
@@ -499,7 +525,7 @@ def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg
     pmin = p.min(axis=1) - pad
     M = A @ _shift(pmin[0], pmin[1])  # b canvas pixels -> source pixels
     shape = (int(math.ceil(p[1].max() - pmin[1] + pad)) + 1, int(math.ceil(p[0].max() - pmin[0] + pad)) + 1)
-    b_full = _observed_in_frame(wb.seen(vps_b), M, shape, scale)
+    b_full = _observed_in_frame(wb.seen(vps_b, thick), M, shape, scale)
     kb = ~np.isnan(b_full)
     bx0, by0, bx1, by1 = _crop_box(kb, rng.integers(5, 21, size=4))
     b_clean = b_full[by0:by1, bx0:bx1]
@@ -529,24 +555,25 @@ def _robot_maps(
     scale: float,
     noise: float,
     world_b: Optional[_World] = None,
+    thick: int = 0,
 ):
     """Maps of robot a (the source's frame, cropped) and robot b (its own frame).
 
-    Robot b explores ``world_b`` (default: ``world``). Returns ``a, b, b_to_source,
+    Robot b explores ``world_b`` (default: ``world``); ``thick``: as :meth:`_World.seen`. Returns ``a, b, b_to_source,
     offset_a, known_b_in_source`` where ``b_to_source`` maps b's pixels to the pixels of
     its source map and ``offset_a`` is a's crop offset in ``world``.
     """
     wb = world if world_b is None else world_b
     src = world.grid
     # Robot a: the source's frame, cut to what it knows plus 5-20 unknown cells.
-    a_clean = world.seen(vps_a)
+    a_clean = world.seen(vps_a, thick)
     ka = ~np.isnan(a_clean)
     x0, y0, x1, y1 = _crop_box(ka, rng.integers(5, 21, size=4))
     a_data = _add_noise(a_clean[y0:y1, x0:x1], noise, rng)
     corner = src.pixel_to_metric([[x0 - 0.5, y1 - 0.5]])[0]
     a = OccupancyGrid(a_data, resolution=src.resolution, origin=(float(corner[0]), float(corner[1]), src.origin[2]))
 
-    b, M, kb_in_src = _robot_in_frame(wb, vps_b, rng, rotation_deg=rotation_deg, scale=scale, noise=noise)
+    b, M, kb_in_src = _robot_in_frame(wb, vps_b, rng, rotation_deg=rotation_deg, scale=scale, noise=noise, thick=thick)
     return a, b, M, (x0, y0), ka, kb_in_src
 
 
@@ -612,18 +639,19 @@ def robot_views_pair(
 
 
 # ------------------------------------------------------------------ simulated
-def _split_views(world: _World, vps: np.ndarray, rng: np.random.Generator, target: float, bounds, *, negative: bool = False):
+def _split_views(world: _World, vps: np.ndarray, rng: np.random.Generator, target: float, bounds, *, negative: bool = False,
+                 gap: int = _MIN_GAP):
     """Viewpoints of robots a and b: the pool ordered along a random direction, a takes
     the first ones, b the last ones, as many as brings the overlap nearest ``target``.
 
     Returns ``(vps_a, vps_b, overlap_estimate, direction_deg)`` of the best of a few
     random directions (the first whose overlap falls in ``bounds``), or ``None`` for a
-    negative split that cannot keep the maps ``_MIN_GAP`` cells apart.
+    negative split that cannot keep the maps ``gap`` cells apart.
     """
     K = len(vps)
     m = max(3, K // 5)
     best = None
-    kernel = np.ones((2 * _MIN_GAP + 1, 2 * _MIN_GAP + 1), np.uint8)
+    kernel = np.ones((2 * gap + 1, 2 * gap + 1), np.uint8)
     for _attempt in range(4):
         phi = rng.uniform(0, 2 * math.pi)
         order = np.argsort(vps @ np.array([math.cos(phi), math.sin(phi)]), kind="stable")
@@ -962,6 +990,34 @@ def halmstad_environments(data_dir=None) -> list:
     return sorted(env for env in names if (root / env).is_dir())
 
 
+def _annotated_pairs(root: Path, environments: Sequence[str], kinds: Sequence[str]) -> tuple[list, list]:
+    """``([(environment, pair), ...], notes)``: the annotated pairs of ``kinds`` of each
+    environment (``root/ENV_pairs.json``) in file order, those whose map files are all
+    in ``root/ENV/``; ``notes`` name the maps missing.
+
+    Raises
+    ------
+    GridMergeError
+        An environment's annotations are missing.
+    """
+    entries = []
+    missing: dict = {}
+    for env in environments:
+        f = root / f"{env}_pairs.json"
+        if not f.is_file():
+            raise GridMergeError(f"Halmstad annotations not found: {f}")
+        for p in json.loads(f.read_text())["pairs"]:
+            if p.get("kind", "sensor") not in kinds:
+                continue
+            absent = [m for m in (p["a"], p["b"]) if not (root / env / f"{m}.png").is_file()]
+            if absent:
+                missing.setdefault(env, set()).update(absent)
+            else:
+                entries.append((env, p))
+    notes = [f"halmstad {env}: pairs with {', '.join(sorted(m))}.png left out (not in {root / env})" for env, m in missing.items()]
+    return entries, notes
+
+
 def _map_number(stem: str) -> int:
     """The number of a sensor map (``E5_07`` -> 7, ``F5_2`` -> 2)."""
     return int(stem.rsplit("_", 1)[1])
@@ -1030,27 +1086,16 @@ def halmstad(
         environments = halmstad_environments(d)
         if not environments:
             raise GridMergeError(f"no Halmstad annotations (ENV_pairs.json with a folder ENV/) in {root}")
-    entries = []
-    missing: dict = {}
-    for env in environments:
-        f = root / f"{env}_pairs.json"
-        if not f.is_file():
-            raise GridMergeError(f"Halmstad annotations not found: {f}")
-        doc = json.loads(f.read_text())
+    entries, notes = _annotated_pairs(root, environments, kinds)
+    if limit is not None:  # the first ``limit`` of each environment and kind
         counts: dict = {}
-        for p in doc["pairs"]:
-            kind = p.get("kind", "sensor")
-            if kind not in kinds:
-                continue
-            absent = [m for m in (p["a"], p["b"]) if not (root / env / f"{m}.png").is_file()]
-            if absent:
-                missing.setdefault(env, set()).update(absent)
-                continue
-            counts[kind] = counts.get(kind, 0) + 1
-            if limit is not None and counts[kind] > limit:
-                continue
-            entries.append((env, p))
-    notes = [f"halmstad {env}: pairs with {', '.join(sorted(m))}.png left out (not in {root / env})" for env, m in missing.items()]
+        kept = []
+        for env, p in entries:
+            key = (env, p.get("kind", "sensor"))
+            counts[key] = counts.get(key, 0) + 1
+            if counts[key] <= limit:
+                kept.append((env, p))
+        entries = kept
     # Sensor pairs first, then layout pairs (keeps the file order within each).
     entries.sort(key=lambda e: 0 if e[1].get("kind", "sensor") == "sensor" else 1)
     if "cross" in kinds:
@@ -1104,6 +1149,257 @@ def halmstad(
         return Case(f"{dataset}/{p['a']}-{p['b']}", dataset, a, b, fit, True, meta)
 
     return Dataset("halmstad", len(entries), build, notes)
+
+
+# ----------------------------------------------------------- halmstad-partial
+#: Radius, in cells of the real map, of the part of the building a partial case's team
+#: has explored (:func:`halmstad_partial`; drawn log-uniformly).
+PARTIAL_RADIUS = (150.0, 450.0)
+#: Annotated points a positive partial case's overlap holds at least: its score is their
+#: median error, as the Halmstad protocol's.
+PARTIAL_POINTS = 3
+_PARTIAL_MARGIN = 10  # cells: a point this near both robots' known cells is in their overlap
+_PARTIAL_SNAP = 15  # cells: how far one of b's viewpoints may move to stand in b's free space
+_PARTIAL_GAP = 40  # negatives: cells between the two robots' maps (in a's map: the maps bend)
+_PARTIAL_TRIES = 20  # draws of a pair before the next pair is tried
+_PARTIAL_THICK = 3  # cells of a real wall kept behind the face a scanner hit (World.seen)
+_PARTIAL_WALL = 4  # cells: a wall of a this near one of b's (carried by the fit) is shared
+
+
+@lru_cache(maxsize=4)
+def _session_world(data_key: str, env: str, stem: str, see_through: int) -> tuple[_World, np.ndarray]:
+    """A Halmstad sensor map cut to its known cells plus 8, ready for ray casting, and the
+    cut's offset ``(x, y)`` in the map's image (where its annotated points are)."""
+    cut, offset = load_map(Path(data_key) / "halmstad" / env / f"{stem}.png").crop_known(8)
+    return _World(cut, f"halmstad:{stem}", see_through), offset
+
+
+def _warp_mask(mask: np.ndarray, M: np.ndarray, shape: tuple) -> np.ndarray:
+    """``mask`` carried by ``M`` (its pixels -> the output's) onto an array of ``shape``,
+    nearest cell."""
+    return cv2.warpAffine(mask.astype(np.uint8), np.ascontiguousarray(M[:2]), (shape[1], shape[0]),
+                          flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
+
+
+def _near(mask: np.ndarray, cells: int) -> np.ndarray:
+    """Cells within ``cells`` (a square) of ``mask``."""
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * cells + 1, 2 * cells + 1), np.uint8)) > 0
+
+
+def _inside(mask: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Which of ``points`` ((N, 2), x = column, y = row) fall on a true cell of ``mask``."""
+    q = np.rint(points).astype(np.int64)
+    H, W = mask.shape
+    ok = (q[:, 0] >= 0) & (q[:, 0] < W) & (q[:, 1] >= 0) & (q[:, 1] < H)
+    out = np.zeros(len(q), dtype=bool)
+    out[ok] = mask[q[ok, 1], q[ok, 0]]
+    return out
+
+
+def _snap(world: _World, points: np.ndarray) -> np.ndarray:
+    """Each point moved to the nearest cell where a robot can stand in ``world`` (its
+    ``region``) within :data:`_PARTIAL_SNAP` cells; points with none are dropped."""
+    H, W = world.region.shape
+    r = _PARTIAL_SNAP
+    out = []
+    for x, y in points:
+        xi, yi = int(round(x)), int(round(y))
+        x0, y0 = max(0, xi - r), max(0, yi - r)
+        ys, xs = np.nonzero(world.region[y0 : min(H, yi + r + 1), x0 : min(W, xi + r + 1)])
+        if len(xs):
+            d = np.hypot(xs + x0 - x, ys + y0 - y)
+            j = int(np.argmin(d))
+            if d[j] <= r:
+                out.append((float(xs[j] + x0), float(ys[j] + y0)))
+    return np.array(out, dtype=float).reshape(-1, 2)
+
+
+def _apply(M: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return np.asarray(points, dtype=float) @ M[:2, :2].T + M[:2, 2]
+
+
+def halmstad_partial(
+    n: int = 60,
+    seed: int = 0,
+    *,
+    data_dir=None,
+    environments: Optional[Sequence[str]] = None,
+    tiers: Sequence[str] = ("easy", "medium", "hard"),
+    negatives: float = 0.2,
+    radius: Sequence[float] = PARTIAL_RADIUS,
+    see_through: int = SEE_THROUGH,
+) -> Dataset:
+    """Two robots that explored part of one real building each, in two real maps of it.
+
+    The simulated set's robots both scan one source map, so their maps agree wherever they
+    overlap; the Halmstad pairs are whole buildings. A real team's maps may overlap little
+    *and* differ: two sessions of a building bend against each other, furniture and doors
+    move, and what one scanner saw as glass the other saw as a wall. This set has both.
+    Case ``k`` (its own generator, seed ``[seed, k, 17]``) takes an annotated sensor pair
+    of the Halmstad data (two Tango maps of one building, say E5_03 and E5_07; pairs in an
+    order drawn from ``seed``, cycled) and:
+
+    * draws scanner positions over the building in map a (as :func:`simulated` does), a
+      centre among them and a radius (log-uniform in ``radius``, cells), and keeps the
+      positions within it: the part of the building the team has explored so far;
+    * splits them between the two robots along a random direction, aiming at an overlap
+      in the tier's range (:data:`TIERS`; negatives: the two robots' maps
+      :data:`_PARTIAL_GAP` cells apart in map a, two distant parts of the building);
+    * robot a ray-casts **map a** from its positions; robot b ray-casts **map b** from
+      its positions carried into map b by the pair's annotation fit (each moved to the
+      nearest free cell of map b within 15 cells, or dropped), then gets a random rotation
+      and a scale in the tier's range, as in :func:`simulated`. No noise is added: the
+      real maps bring their own.
+
+    Positive cases are scored by the Halmstad protocol on the annotated points that lie in
+    the two robots' overlap (within 10 cells of cells both know, in both maps): a case is
+    drawn again until at least :data:`PARTIAL_POINTS` do (after 20 draws, the next pair
+    is taken). ``truth`` is the annotation fit carried into the two robots' frames
+    (informative: the maps bend, so it is 5-15 px off in places, as for the Halmstad
+    pairs).
+
+    Parameters
+    ----------
+    n : int
+    seed : int
+    data_dir : path, optional
+        The shared data folder (default: :func:`default_data_dir`).
+    environments : sequence of str, optional
+        Default: every one in the folder (:func:`halmstad_environments`).
+    tiers : sequence of str
+        Tiers of the positive cases, cycled (their overlap and scale ranges).
+    negatives : float
+        Share of negative cases, in ``[0, 1)``, spread as in :func:`simulated`.
+    radius : (float, float)
+        Range of the explored part's radius, cells of the real map.
+    see_through : int
+        Unknown cells of the real map a scanner ray crosses (:data:`SEE_THROUGH`).
+
+    Returns
+    -------
+    Dataset
+        Cases ``"halmstad-partial/0000"`` ...; ``meta``: ``tier``, ``environment``,
+        ``map_a``, ``map_b``, ``source`` (``"halmstad:E5"``), ``overlap`` (of the robots'
+        known cells, b's carried into map a by the fit), ``overlap_target``,
+        ``shared_walls`` (a's wall cells within 4 cells of one of b's, so carried:
+        the maps bend),
+        ``rotation_deg`` and ``scale`` (of ``truth``), ``cell_scale`` (b's cells over
+        a's), ``radius_px``, ``views``, ``points_a``, ``points_b`` (the points scored, in
+        the two robots' pixels), ``fit_median_residual_px``, ``threshold_px``,
+        ``protocol = "halmstad"``.
+
+    Raises
+    ------
+    GridMergeError
+        No shared data, no annotated sensor pair, bad parameters.
+    """
+    n = int(n)
+    if n < 0:
+        raise GridMergeError(f"n must be >= 0, got {n}")
+    for t in tiers:
+        if t not in TIERS:
+            raise GridMergeError(f"unknown tier {t!r} (use {', '.join(TIERS)})")
+    if not 0.0 <= negatives < 1.0:
+        raise GridMergeError(f"negatives must be in [0, 1), got {negatives}")
+    lo, hi = (float(v) for v in radius)
+    if not 0 < lo <= hi:
+        raise GridMergeError(f"radius must be two lengths 0 < lo <= hi, got {tuple(radius)}")
+    d = resolve_data_dir(data_dir)
+    if d is None:
+        raise GridMergeError(f"the Halmstad data needs the shared data folder ({default_data_dir()} not found)")
+    root = d / "halmstad"
+    if environments is None:
+        environments = halmstad_environments(d)
+    pairs, notes = _annotated_pairs(root, environments, ("sensor",))
+    if not pairs:
+        raise GridMergeError(f"no annotated sensor pair (ENV_pairs.json with its maps in ENV/) in {root}")
+    order = np.random.default_rng([int(seed), 13]).permutation(len(pairs))
+    data_key = str(d)
+
+    def is_negative(k: int) -> bool:
+        return math.floor((k + 1) * negatives) > math.floor(k * negatives)
+
+    def build(k: int) -> Case:
+        rng = np.random.default_rng([int(seed), int(k), 17])
+        negative = is_negative(k)
+        j = k - sum(is_negative(i) for i in range(k))
+        tier = TIERS["medium"] if negative else TIERS[tiers[j % len(tiers)]]
+        cid = f"halmstad-partial/{k:04d}"
+        for step in range(len(pairs)):
+            env, p = pairs[order[(k + step) % len(pairs)]]
+            case = _partial_case(cid, env, p, rng, tier, negative, (lo, hi), data_key, int(see_through))
+            if case is not None:
+                return case
+        raise GridMergeError(f"no pair of {root} gives case {cid} (too little free space in the maps?)")
+
+    return Dataset("halmstad-partial", n, build, notes, {"see_through": int(see_through), "radius": [lo, hi]})
+
+
+def _partial_case(cid, env, p, rng, tier: Tier, negative: bool, radius, data_key, see_through) -> Optional[Case]:
+    wa, off_a = _session_world(data_key, env, p["a"], see_through)
+    wb, off_b = _session_world(data_key, env, p["b"], see_through)
+    fit = np.vstack([np.asarray(p["fit_b_to_a"], dtype=float), [0.0, 0.0, 1.0]])
+    b_to_a = _shift(-off_a[0], -off_a[1]) @ fit @ _shift(off_b[0], off_b[1])  # world b -> world a pixels
+    a_to_b = np.linalg.inv(b_to_a)
+    pa = np.asarray(p["points_a"], dtype=float) - off_a
+    pb = np.asarray(p["points_b"], dtype=float) - off_b
+    wa._views.clear()
+    wb._views.clear()
+    try:
+        pool = wa.viewpoints(rng)
+        for _ in range(_PARTIAL_TRIES):
+            centre = pool[int(rng.integers(len(pool)))]
+            r = _log_uniform(rng, *radius)
+            dist = np.hypot(*(pool - centre).T)
+            part = pool[dist <= r] if (dist <= r).sum() >= 6 else pool[np.argsort(dist, kind="stable")[:6]]
+            target = 0.0 if negative else float(rng.uniform(*tier.overlap))
+            split = _split_views(wa, part, rng, target, (0.0, 0.0) if negative else tier.overlap, negative=negative,
+                                 gap=_PARTIAL_GAP)
+            if split is None:
+                continue
+            va, vb_in_a, _, phi = split
+            vb = _snap(wb, _apply(a_to_b, vb_in_a))
+            if len(vb) == 0:
+                continue
+            rot = float(rng.uniform(-180.0, 180.0))
+            cell_scale = _log_uniform(rng, *tier.scale)
+            a, b, M, off, ka, kb = _robot_maps(wa, va, vb, rng, rotation_deg=rot, scale=cell_scale, noise=0.0, world_b=wb,
+                                               thick=_PARTIAL_THICK)
+            kb_in_a = _warp_mask(kb, b_to_a, ka.shape)
+            meta = {"tier": "negative" if negative else tier.name, "environment": env, "map_a": p["a"], "map_b": p["b"], "source": f"halmstad:{env}",
+                    "cell_scale": cell_scale, "radius_px": r, "views": [len(va), len(vb)], "direction_deg": phi,
+                    "a_offset": [int(off[0]), int(off[1])], "b_to_source": M.tolist()}
+            if negative:
+                if (_near(ka, _PARTIAL_GAP // 2) & kb_in_a).any():
+                    continue  # the maps bend: b's part came near a's
+                meta.update(negative_kind="distant-parts", overlap=0.0, rotation_deg=rot, scale=cell_scale)
+                return Case(cid, "halmstad-partial", a.replace(name=f"{cid} a"), b.replace(name=f"{cid} b"), None, False, meta)
+            both = _near(ka & kb_in_a, _PARTIAL_MARGIN)
+            scored = _inside(both, pa) & _inside(_near(kb, _PARTIAL_MARGIN), pb)
+            if scored.sum() < PARTIAL_POINTS:
+                continue
+            truth = _shift(-off[0], -off[1]) @ b_to_a @ M
+            with np.errstate(invalid="ignore"):
+                walls_a = wa.seen(va, _PARTIAL_THICK) > 0.5
+                walls_b = _warp_mask(wb.seen(vb, _PARTIAL_THICK) > 0.5, b_to_a, ka.shape)
+            resid = float(p["fit_median_residual_px"])
+            meta.update(
+                overlap=round(measure_overlap(ka, kb_in_a), 6),
+                overlap_target=round(target, 6),
+                shared_walls=int((walls_a & _near(walls_b, _PARTIAL_WALL)).sum()),
+                rotation_deg=math.degrees(math.atan2(truth[1, 0], truth[0, 0])),
+                scale=float(math.hypot(truth[0, 0], truth[1, 0])),
+                points_a=(pa[scored] - off).tolist(),
+                points_b=_apply(np.linalg.inv(M), pb[scored]).tolist(),
+                fit_median_residual_px=resid,
+                threshold_px=max(20.0, 2.0 * resid),
+                protocol="halmstad",
+            )
+            return Case(cid, "halmstad-partial", a.replace(name=f"{cid} a"), b.replace(name=f"{cid} b"), truth, True, meta)
+        return None
+    finally:
+        wa._views.clear()
+        wb._views.clear()
 
 
 def unswapped(name: str) -> str:
@@ -1195,7 +1491,8 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
          source_maps: Optional[Sequence] = None) -> Dataset:
     """A data set by name, with the benchmark's default sizes.
 
-    ``simulated``: ``n`` cases (default 60; 6 with ``quick``); ``halmstad``: every
+    ``simulated``: ``n`` cases (default 60; 6 with ``quick``); ``halmstad-partial``: ``n``
+    cases (default 60; 3 with ``quick``; :func:`halmstad_partial`); ``halmstad``: every
     annotated pair and every cross-building negative (with ``quick``: the first 2 sensor
     pairs and the first layout pair of each environment, and one cross pair), or the first
     ``n`` of each kind and environment; ``halmstad:ENV`` or ``halmstad:ENV+ENV...``: the
@@ -1208,13 +1505,15 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     Raises
     ------
     GridMergeError
-        Unknown name; ``halmstad`` without the shared data.
+        Unknown name; ``halmstad`` or ``halmstad-partial`` without the shared data.
     """
     base, envs, swap = check_name(name)
     if swap:
         return swapped(load(unswapped(name), seed=seed, n=n, quick=quick, data_dir=data_dir, source_maps=source_maps))
     if base == "simulated":
         return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir, source_maps=source_maps)
+    if base == "halmstad-partial":
+        return halmstad_partial(n=(3 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir)
     if base == "halmstad":
         if quick:
             sensor = halmstad(data_dir, kinds=("sensor",), limit=2, environments=envs)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-from .datasets import TIERS, unswapped
+from .datasets import SEEDED, TIERS, unswapped
 from .metrics import PRECISE_PX, SHARED_WALL_GROUPS, SUCCESS_PX
 
 __all__ = ["results_markdown", "compare_summaries", "compare_cases", "outcome", "options_text", "COMPARED"]
@@ -139,6 +139,12 @@ def results_markdown(bench) -> str:
                 )
                 + "; any rotation. **negative**: two distant parts of one map or two different maps (must be declined).\n"
             )
+        if unswapped(ds) == "halmstad-partial" and by == "tier":
+            out.append(
+                "\nEach robot explored part of a building in its own real map (two Halmstad sessions); tiers as the "
+                "simulated set's, without added noise. Positives are scored by the Halmstad protocol on the annotated "
+                "points in the overlap. **negative**: two distant parts of the building (must be declined).\n"
+            )
 
     t1 = s.get("table1") or {}
     if t1.get("methods"):
@@ -242,10 +248,11 @@ def compare_summaries(run1, run2) -> str:
     else:
         # A simulated case of one id is another pair under another seed.
         def fixed(records):
-            return [r for r in records if unswapped(r["dataset"]) != "simulated"]
+            return [r for r in records if unswapped(r["dataset"]) not in SEEDED]
 
         out.append(compare_cases(fixed(run1.records), fixed(run2.records)))
-        out.append(f"\nThe runs' seeds differ ({seeds[0]} and {seeds[1]}): simulated cases are not compared case by case.\n")
+        out.append(f"\nThe runs' seeds differ ({seeds[0]} and {seeds[1]}): simulated and partial cases are not compared "
+                   "case by case.\n")
     return "".join(out)
 
 

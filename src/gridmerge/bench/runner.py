@@ -136,14 +136,16 @@ def _resolve_datasets(datasets, *, seed, n, quick, data_dir, source_maps=None) -
             if name in names_seen:
                 continue
             names_seen.add(name)
-            if name == "halmstad" and item == "all" and _datasets.resolve_data_dir(data_dir) is None:
-                notes.append(f"halmstad skipped: shared data not found at {_datasets.default_data_dir()}")
+            real = name in ("halmstad", "halmstad-partial")
+            if real and item == "all" and _datasets.resolve_data_dir(data_dir) is None:
+                notes.append(f"{name} skipped: shared data not found at {_datasets.default_data_dir()}")
                 continue
-            if name == "halmstad" and item == "all" and not _datasets.halmstad_environments(data_dir):
-                notes.append(f"halmstad skipped: no annotated maps in {_datasets.resolve_data_dir(data_dir) / 'halmstad'}")
+            if real and item == "all" and not _datasets.halmstad_environments(data_dir):
+                notes.append(f"{name} skipped: no annotated maps in {_datasets.resolve_data_dir(data_dir) / 'halmstad'}")
                 continue
-            out.append(_datasets.load(name, seed=seed, n=n if _datasets.unswapped(name) == "simulated" else None, quick=quick,
-                                      data_dir=data_dir, source_maps=source_maps))
+            sized = _datasets.unswapped(name) in _datasets.SEEDED
+            out.append(_datasets.load(name, seed=seed, n=n if sized else None, quick=quick, data_dir=data_dir,
+                                      source_maps=source_maps))
     return out, notes
 
 
@@ -292,8 +294,9 @@ def run(
         registered method. Names that :data:`gridmerge.align.METHODS` does not know are
         skipped with a warning in the results.
     datasets : str, Dataset, or a sequence of them
-        ``"simulated"``, ``"halmstad"``, ``"paper"``, ``"all"`` (the three; Halmstad is
-        skipped with a note when the shared data is absent), ``"halmstad:E5"`` or
+        ``"simulated"``, ``"halmstad"``, ``"halmstad-partial"``, ``"paper"``, ``"all"``
+        (the four; the two Halmstad sets are skipped with a note when the shared data is
+        absent), ``"halmstad:E5"`` or
         ``"halmstad:E5+HIH"`` (some environments, :func:`~gridmerge.bench.datasets.load`), or
         :class:`~gridmerge.bench.datasets.Dataset` objects.
     seed : int
@@ -476,7 +479,7 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str, maps_dir=
             continue
         sources = (entry.get("params") or {}).get("source_maps")
         maps = [m["path"] if maps_dir is None else Path(maps_dir) / Path(m["path"]).name for m in sources] if sources else None
-        if base == "simulated":
+        if base in _datasets.SEEDED:
             head, _, number = case_id.partition("/")
             if head != name or not number.isdigit():
                 continue
@@ -499,7 +502,7 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str, maps_dir=
 
 def _check_rebuilt(case, record: dict, where) -> None:
     same = list(case.a.shape) == list(record.get("a_shape") or []) and list(case.b.shape) == list(record.get("b_shape") or [])
-    if same and case.dataset.startswith("simulated"):
+    if same and _datasets.unswapped(case.dataset) in _datasets.SEEDED:
         def source(name):  # a map file may have moved (rebuild_case's maps_dir): its name and cells count
             return Path(name[len(_datasets.FILE_PREFIX):]).name if str(name).startswith(_datasets.FILE_PREFIX) else name
 

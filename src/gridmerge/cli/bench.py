@@ -2,7 +2,7 @@
 
 ::
 
-    gridmerge bench [run] [--dataset simulated|halmstad|paper|all ...] [--methods sift,ransac,...]
+    gridmerge bench [run] [--dataset simulated|halmstad|halmstad-partial|paper|all ...] [--methods sift,ransac,...]
                           [--n N] [--seed S] [--quick] [--out DIR] [--data DIR] [--progress] [--force]
                           [--min-confidence C] [--one-sided-confidence C] [--max-slide C] [--max-crossing C]
                           [--source-map MAP ...]
@@ -30,7 +30,7 @@ __all__ = ["add_parser", "run", "ProgressBar"]
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
 
-_DATASET_CHOICES = ("simulated", "halmstad", "paper", "all")
+_DATASET_CHOICES = ("simulated", "halmstad", "halmstad-partial", "paper", "all")
 
 
 def _dataset_name(text: str) -> str:
@@ -81,7 +81,7 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
         action="append",
         type=_dataset_name,
         metavar="NAME",
-        help="data set to run: simulated, halmstad, paper or all (default: all), or halmstad:ENV[+ENV...] for some "
+        help="data set to run: simulated, halmstad, halmstad-partial, paper or all (default: all), or halmstad:ENV[+ENV...] for some "
         "of the Halmstad folder's environments (halmstad:E5, halmstad:E5+HIH); NAME-swapped runs a data set "
         "with the two maps of every pair swapped (halmstad-swapped); repeatable",
     )
@@ -92,7 +92,8 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
         metavar="M1,M2",
         help="comma-separated alignment methods (default: every registered one); unregistered names are skipped with a warning",
     )
-    add("--n", "bench_n", None, type=int, metavar="N", help="number of simulated cases (default 60; 6 with --quick)")
+    add("--n", "bench_n", None, type=int, metavar="N",
+        help="number of simulated and halmstad-partial cases (default 60; 6 and 3 with --quick)")
     add("--seed", "bench_seed", 0, type=int, metavar="S", help="seed of the cases and of every alignment (default 0)")
     add("--quick", "bench_quick", False, action="store_true", help="a small, fast slice of every data set (CI)")
     add("--out", "bench_out", None, metavar="DIR", help="results folder (default: bench-YYYYmmdd-HHMMSS)")
