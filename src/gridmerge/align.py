@@ -198,6 +198,18 @@ class AlignOptions:
         8700 wall cells or more, and on windows cut from them (small real overlaps)
         right poses reach 0.23, so a few such merges are lost. docs/benchmarks.md,
         forty-fourth session. ``None`` skips the test (CLI ``--max-crossing``).
+    unsure_walls : int or None
+        Decline a pose of confidence below 0.8 (:data:`SURE_CONFIDENCE`) that rests on
+        fewer wall cells than this in the overlap (both maps' together, despeckled, as
+        ``result.verification`` counts them in a's cells). The confidence's wall term was
+        calibrated on whole buildings, where walls agreeing on half of a building are far
+        beyond chance; on a few rooms of a repetitive building, a chance pose agrees as
+        well. Measured: of the 1964 poses the stored runs took (simulated, HM3D homes,
+        Halmstad), every right one below 0.8 is a whole Halmstad building on 11 000 wall
+        cells or more; on ``halmstad-partial`` (real maps of part of a building each),
+        seeds 0-2, 9 of the 15 wrong or false merges lay below 0.8 on fewer than 10 000,
+        and 3 of the 68 right ones. docs/benchmarks.md, forty-fifth session. ``None``
+        skips the test (CLI ``--unsure-walls``).
     max_keypoints : int
         Strongest keypoints kept per map (bounds time and memory).
     feature_pixels : int
@@ -337,6 +349,7 @@ class AlignOptions:
     min_confidence: float = 0.5
     max_slide: float | None = 0.75
     max_crossing: float | None = 0.2
+    unsure_walls: int | None = 10000
     max_keypoints: int = 20000
     feature_pixels: int = 400_000
     keypoints_first: float = 0.9
@@ -2124,6 +2137,8 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
                 crossed = crossing(ca, cb, in_cut, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
                 crossing_note = {"share": _finite_or_none(round(crossed.share, 4)), "walls": crossed.walls}
                 message = _crossing_reason(crossed, opts)
+            if not message:
+                message = _unsure_reason(v, conf, opts)
             if not message and opts.max_slide is not None:
                 slid = slide(ca, cb, in_cut, tolerance=opts.wall_tolerance, fraction=_SLIDE_FRACTION,
                              verification=est.verification)
@@ -2245,6 +2260,10 @@ _CROP_MARGIN = 8
 #: How far :attr:`AlignOptions.max_slide`'s test slides b, as a fraction of the square
 #: root of the overlap's cells.
 _SLIDE_FRACTION = 0.15
+#: :attr:`AlignOptions.unsure_walls`: below this confidence a pose needs that many overlap
+#: wall cells.
+SURE_CONFIDENCE = 0.8
+
 #: :attr:`AlignOptions.max_crossing`: a wall counts as crossing the other map's open
 #: space this many cells (the finer map's) inside it, and the test judges poses resting
 #: on fewer wall cells in the overlap than the evidence bound (both maps' together).
@@ -2494,6 +2513,19 @@ def _crossing_reason(crossed: Crossing, opts: AlignOptions) -> str:
     return (f"declined: {crossed.share:.0%} of the overlap's walls ({crossed.deep} of {crossed.walls} cells) "
             f"stand inside the other map's open space, at most {opts.max_crossing:.0%} on fewer than "
             f"{_CROSSING_EVIDENCE} wall cells: walls across its rooms")
+
+
+def _unsure_reason(v: Verification, conf: float, opts: AlignOptions) -> str:
+    """Why a pose below :data:`SURE_CONFIDENCE` on so few overlap walls is declined (""
+    when it is not: :attr:`AlignOptions.unsure_walls`)."""
+    if opts.unsure_walls is None or conf >= SURE_CONFIDENCE or v.walls_a is None or v.walls_b is None:
+        return ""
+    walls = v.walls_a + v.walls_b
+    if walls >= opts.unsure_walls:
+        return ""
+    shown = math.floor(conf * 100) / 100  # 0.7996 reads 0.79, below the bar it is judged by
+    return (f"declined: confidence {shown:.2f} on {walls} overlap wall cells; below {SURE_CONFIDENCE} a pose needs "
+            f"{opts.unsure_walls} (a building's walls agreeing in part, not a few rooms')")
 
 
 def _slide_reason(slid: Slide, opts: AlignOptions) -> str:

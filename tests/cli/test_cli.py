@@ -323,6 +323,9 @@ BAD_INPUT = [
     ("max-slide-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--max-slide", "0.5"], "own rule"),
     ("max-crossing-negative", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--max-crossing", "-1"], "0 to 1"),
     ("max-crossing-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "hough", "--max-crossing", "0.5"], "own rule"),
+    ("unsure-walls-negative", _nothing, ["align", "a.yaml", "b.yaml", "--unsure-walls", "-5"], "0 or more"),
+    ("unsure-walls-fraction", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--unsure-walls", "0.5"], "whole number"),
+    ("unsure-walls-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--unsure-walls", "5"], "own rule"),
     # The baselines decline by their authors' rules: a threshold would be silently ignored.
     ("threshold-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--min-confidence", "0.4"], "own rule"),
     ("merge-threshold-with-baseline", _nothing,

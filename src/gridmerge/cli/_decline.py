@@ -1,5 +1,6 @@
 """The decline thresholds on the command line: ``--min-confidence``,
-``--one-sided-confidence``, ``--max-slide`` and ``--max-crossing``, shared by ``align``, ``merge`` and ``bench``.
+``--one-sided-confidence``, ``--max-slide``, ``--max-crossing`` and ``--unsure-walls``,
+shared by ``align``, ``merge`` and ``bench``.
 
 They set :class:`gridmerge.align.AlignOptions` fields of gridmerge's own methods (those
 whose success the verification decides, :attr:`gridmerge.align.Method.verified`). The
@@ -13,7 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["FLAGS", "confidence", "help_text", "overrides"]
+__all__ = ["FLAGS", "confidence", "cells", "help_text", "metavar", "overrides", "type_of"]
 
 #: flag -> AlignOptions field.
 FLAGS = {
@@ -21,6 +22,7 @@ FLAGS = {
     "--one-sided-confidence": "one_sided_confidence",
     "--max-slide": "max_slide",
     "--max-crossing": "max_crossing",
+    "--unsure-walls": "unsure_walls",
 }
 
 _HELP = {
@@ -33,6 +35,8 @@ _HELP = {
     "but not where on it); 1 declines only poses that both slid poses beat",
     "max_crossing": "decline a pose resting on fewer than 3000 overlap wall cells when more than C of them stand "
     "inside the other map's open space, 0 to 1 (default {d}; maps of two places laid room on room); 1 turns it off",
+    "unsure_walls": "decline a pose of confidence below 0.8 resting on fewer than N overlap wall cells (default {d}; "
+    "a few rooms of a repetitive building agree in part by chance, a whole building does not); 0 turns it off",
 }
 
 
@@ -45,6 +49,26 @@ def confidence(text: str) -> float:
     if not (math.isfinite(value) and 0.0 <= value <= 1.0):
         raise argparse.ArgumentTypeError(f"must be a number from 0 to 1, got {text!r}")
     return value
+
+
+def cells(text: str) -> int:
+    """argparse type: a count of cells, 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
+    return value
+
+
+def type_of(field: str):
+    """The argparse type of a field's flag."""
+    return cells if field == "unsure_walls" else confidence
+
+
+def metavar(field: str) -> str:
+    return "N" if field == "unsure_walls" else "C"
 
 
 def help_text(field: str) -> str:

@@ -107,7 +107,7 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
     add("--no-memory", "bench_memory", True, action="store_false",
         help="do not measure each call's peak memory (tracemalloc, which makes the calls about 1.5-1.7x slower)")
     for flag, name in _decline.FLAGS.items():
-        add(flag, "bench_" + name, None, type=_decline.confidence, metavar="C",
+        add(flag, "bench_" + name, None, type=_decline.type_of(name), metavar=_decline.metavar(name),
             help=_decline.help_text(name) + "; gridmerge's own methods only, the baselines keep their rules")
     return aliases
 

@@ -111,12 +111,13 @@ def _verified_methods() -> str:
 def _add_decline(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(f"decline thresholds (methods {_verified_methods()})")
     for flag, name in _decline.FLAGS.items():
-        group.add_argument(flag, dest=name, type=_decline.confidence, default=None, metavar="C", help=_decline.help_text(name))
+        group.add_argument(flag, dest=name, type=_decline.type_of(name), default=None, metavar=_decline.metavar(name),
+                           help=_decline.help_text(name))
 
 
 def _decline_options(args) -> dict:
     """AlignOptions of the decline thresholds (--min-confidence, --one-sided-confidence,
-    --max-slide, --max-crossing); a usage error with a method that declines by its own rule."""
+    --max-slide, --max-crossing, --unsure-walls); a usage error with a method that declines by its own rule."""
     given = _decline.overrides({name: getattr(args, name, None) for name in _decline.FLAGS.values()})
     if given and not METHODS[args.method].verified:
         flags = [f for f, name in _decline.FLAGS.items() if name in given]
