@@ -1184,13 +1184,16 @@ def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
     a, b = fleet.maps[5], fleet.maps[6]
     assert not align(a, b, rng=0).success
     monkeypatch.setattr(align_module, "_POLISH_REACH", 30.0)
-    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None, max_crossing=None)
+    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None, max_crossing=None, unsure_walls=None)
     assert r.success and corner_error(r.transform, fleet.relative(5, 6), b.shape) > 100
-    r = align(a, b, rng=0, search_from="a", max_crossing=None)
+    r = align(a, b, rng=0, search_from="a", max_crossing=None, unsure_walls=None)
     assert not r.success and "found from one map's side only" in r.message
     # The slid pose's walls cross robot 6's rooms too (38 % of 2397 cells).
-    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None)
+    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None, unsure_walls=None)
     assert not r.success and "stand inside the other map's open space" in r.message
+    # And at confidence 0.59 it rests on 2397 wall cells, not a building's.
+    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None, max_crossing=None)
+    assert not r.success and "on 2397 overlap wall cells; below 0.8" in r.message
 
 
 def _one_side(transform, confidence, source="walls"):
@@ -1398,7 +1401,10 @@ def test_two_buildings_fit_from_one_side_only_are_declined(shared_data):
     r = align(a, b, rng=0, search_from="a")
     assert not r.success and "found from one map's side only" in r.message
     assert r.details["other_side"]["moved_px"] > 100 and not r.details["other_side"]["same_pose"]
-    assert align(a, b, rng=0, search_from="a", one_sided_confidence=None).success
+    assert align(a, b, rng=0, search_from="a", one_sided_confidence=None, unsure_walls=None).success
+    # At confidence 0.75 on 9872 overlap wall cells, it is not a building's worth either.
+    r = align(a, b, rng=0, search_from="a", one_sided_confidence=None)
+    assert not r.success and "on 9872 overlap wall cells; below 0.8" in r.message
     assert not align(a, b, rng=0).success
 
 
