@@ -54,6 +54,7 @@ from .. import samples
 from ..errors import GridMergeError
 from ..grid import OccupancyGrid
 from ..io import load_map
+from ..transforms import AffineTransform
 
 __all__ = [
     "Case",
@@ -736,6 +737,37 @@ def _log_uniform(rng: np.random.Generator, lo: float, hi: float) -> float:
     return float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
 
 
+@dataclass(frozen=True)
+class _Plan:
+    """Which cases of a seeded data set are negative pairs (a share ``negatives`` of
+    them, evenly spread: with 0.2, every fifth) and which tier each positive takes
+    (``tiers``, cycled over the positives)."""
+
+    tiers: tuple
+    negatives: float
+
+    @classmethod
+    def checked(cls, n, tiers: Sequence[str], negatives: float) -> tuple[int, "_Plan"]:
+        """``(n, plan)``, the arguments checked (:class:`GridMergeError`)."""
+        n = int(n)
+        if n < 0:
+            raise GridMergeError(f"n must be >= 0, got {n}")
+        for t in tiers:
+            if t not in TIERS:
+                raise GridMergeError(f"unknown tier {t!r} (use {', '.join(TIERS)})")
+        if not 0.0 <= negatives < 1.0:
+            raise GridMergeError(f"negatives must be in [0, 1), got {negatives}")
+        return n, cls(tuple(tiers), float(negatives))
+
+    def negative(self, k: int) -> bool:
+        return math.floor((k + 1) * self.negatives) > math.floor(k * self.negatives)
+
+    def tier(self, k: int) -> Tier:
+        """The tier of case ``k``, a positive."""
+        j = k - sum(self.negative(i) for i in range(k))
+        return TIERS[self.tiers[j % len(self.tiers)]]
+
+
 def simulated(
     n: int = 60,
     seed: int = 0,
@@ -807,14 +839,7 @@ def simulated(
         source's cells), ``rotation_deg``, ``scale``, ``noise``, ``views`` (a, b),
         ``direction_deg``, ``a_offset``, ``b_to_source``, ``see_through``.
     """
-    n = int(n)
-    if n < 0:
-        raise GridMergeError(f"n must be >= 0, got {n}")
-    for t in tiers:
-        if t not in TIERS:
-            raise GridMergeError(f"unknown tier {t!r} (use {', '.join(TIERS)})")
-    if not 0.0 <= negatives < 1.0:
-        raise GridMergeError(f"negatives must be in [0, 1), got {negatives}")
+    n, plan = _Plan.checked(n, tiers, negatives)
     see_through = int(see_through)
     if see_through < 0:
         raise GridMergeError(f"see_through must be >= 0, got {see_through}")
@@ -842,24 +867,19 @@ def simulated(
         data_key = None if d is None else str(d)
     shapes = [tuple(int(v) for v in s) for s in building_shapes]
 
-    def is_negative(k: int) -> bool:
-        return math.floor((k + 1) * negatives) > math.floor(k * negatives)
-
     def build(k: int) -> Case:
         rng = np.random.default_rng([int(seed), int(k), 7])
-        if is_negative(k):
+        if plan.negative(k):
             case = _negative_case(k, rng, available, data_key, shapes, see_through)
         else:
-            j = k - sum(is_negative(i) for i in range(k))
-            tier = TIERS[tiers[j % len(tiers)]]
-            case = _positive_case(k, rng, tier, available, data_key, shapes, see_through)
+            case = _positive_case(k, rng, plan.tier(k), available, data_key, shapes, see_through)
         case.meta["see_through"] = see_through
         return case
 
     if source_maps is not None and len(available) == 1:
         # One map: its negative pairs are two distant parts of it. A map too small for
         # them fails here, before a run starts, not in the middle of one.
-        first = next((k for k in range(n) if is_negative(k)), None)
+        first = next((k for k in range(n) if plan.negative(k)), None)
         if first is not None:
             build(first)
     return Dataset("simulated", n, build, notes, params)
@@ -1214,10 +1234,6 @@ def _snap(world: _World, points: np.ndarray) -> np.ndarray:
     return np.array(out, dtype=float).reshape(-1, 2)
 
 
-def _apply(M: np.ndarray, points: np.ndarray) -> np.ndarray:
-    return np.asarray(points, dtype=float) @ M[:2, :2].T + M[:2, 2]
-
-
 def halmstad_partial(
     n: int = 60,
     seed: int = 0,
@@ -1293,14 +1309,7 @@ def halmstad_partial(
     GridMergeError
         No shared data, no annotated sensor pair, bad parameters.
     """
-    n = int(n)
-    if n < 0:
-        raise GridMergeError(f"n must be >= 0, got {n}")
-    for t in tiers:
-        if t not in TIERS:
-            raise GridMergeError(f"unknown tier {t!r} (use {', '.join(TIERS)})")
-    if not 0.0 <= negatives < 1.0:
-        raise GridMergeError(f"negatives must be in [0, 1), got {negatives}")
+    n, plan = _Plan.checked(n, tiers, negatives)
     lo, hi = (float(v) for v in radius)
     if not 0 < lo <= hi:
         raise GridMergeError(f"radius must be two lengths 0 < lo <= hi, got {tuple(radius)}")
@@ -1316,14 +1325,10 @@ def halmstad_partial(
     order = np.random.default_rng([int(seed), 13]).permutation(len(pairs))
     data_key = str(d)
 
-    def is_negative(k: int) -> bool:
-        return math.floor((k + 1) * negatives) > math.floor(k * negatives)
-
     def build(k: int) -> Case:
         rng = np.random.default_rng([int(seed), int(k), 17])
-        negative = is_negative(k)
-        j = k - sum(is_negative(i) for i in range(k))
-        tier = TIERS["medium"] if negative else TIERS[tiers[j % len(tiers)]]
+        negative = plan.negative(k)
+        tier = TIERS["medium"] if negative else plan.tier(k)
         cid = f"halmstad-partial/{k:04d}"
         for step in range(len(pairs)):
             env, p = pairs[order[(k + step) % len(pairs)]]
@@ -1340,7 +1345,6 @@ def _partial_case(cid, env, p, rng, tier: Tier, negative: bool, radius, data_key
     wb, off_b = _session_world(data_key, env, p["b"], see_through)
     fit = np.vstack([np.asarray(p["fit_b_to_a"], dtype=float), [0.0, 0.0, 1.0]])
     b_to_a = _shift(-off_a[0], -off_a[1]) @ fit @ _shift(off_b[0], off_b[1])  # world b -> world a pixels
-    a_to_b = np.linalg.inv(b_to_a)
     pa = np.asarray(p["points_a"], dtype=float) - off_a
     pb = np.asarray(p["points_b"], dtype=float) - off_b
     wa._views.clear()
@@ -1358,7 +1362,7 @@ def _partial_case(cid, env, p, rng, tier: Tier, negative: bool, radius, data_key
             if split is None:
                 continue
             va, vb_in_a, _, phi = split
-            vb = _snap(wb, _apply(a_to_b, vb_in_a))
+            vb = _snap(wb, AffineTransform(b_to_a).inverse(vb_in_a))
             if len(vb) == 0:
                 continue
             rot = float(rng.uniform(-180.0, 180.0))
@@ -1390,7 +1394,7 @@ def _partial_case(cid, env, p, rng, tier: Tier, negative: bool, radius, data_key
                 rotation_deg=math.degrees(math.atan2(truth[1, 0], truth[0, 0])),
                 scale=float(math.hypot(truth[0, 0], truth[1, 0])),
                 points_a=(pa[scored] - off).tolist(),
-                points_b=_apply(np.linalg.inv(M), pb[scored]).tolist(),
+                points_b=AffineTransform(M).inverse(pb[scored]).tolist(),
                 fit_median_residual_px=resid,
                 threshold_px=max(20.0, 2.0 * resid),
                 protocol="halmstad",

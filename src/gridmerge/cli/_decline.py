@@ -62,13 +62,18 @@ def cells(text: str) -> int:
     return value
 
 
+#: Fields whose flag takes a count of cells (``N``); the others take a number from 0 to 1 (``C``).
+_COUNTS = frozenset({"unsure_walls"})
+
+
 def type_of(field: str):
     """The argparse type of a field's flag."""
-    return cells if field == "unsure_walls" else confidence
+    return cells if field in _COUNTS else confidence
 
 
 def metavar(field: str) -> str:
-    return "N" if field == "unsure_walls" else "C"
+    """The placeholder of a field's flag in the help."""
+    return "N" if field in _COUNTS else "C"
 
 
 def help_text(field: str) -> str:
