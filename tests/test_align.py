@@ -1688,3 +1688,40 @@ def test_unsure_walls_declines_a_chance_pose_on_a_few_rooms_of_real_maps(shared_
     loose = align(case.a, case.b, rng=1, unsure_walls=None)
     assert loose.success and loose.confidence < 0.8
     np.testing.assert_allclose(loose.transform.params, r.candidate.params)
+
+
+def _room(d: np.ndarray, x0: int, y0: int) -> None:
+    """A 100 x 100 room with a door, a stub wall and a shelf drawn into ``d`` at (x0, y0)."""
+    d[y0 : y0 + 100, x0 : x0 + 100] = 0.0
+    d[[y0, y0 + 99], x0 : x0 + 100] = 1.0
+    d[y0 : y0 + 100, [x0, x0 + 99]] = 1.0
+    d[y0 + 99, x0 + 20 : x0 + 35] = 0.0  # the door
+    d[y0 + 30 : y0 + 60, x0 + 60] = 1.0  # a stub wall
+    d[y0 + 70, x0 + 10 : x0 + 40] = 1.0  # a shelf
+
+
+def test_a_confidence_lowered_by_a_rival_pose_says_so():
+    """Map a holds two identical rooms, map b one of them: b fits either room as well, and
+    the decline says that a clearly different pose fits as well (a bare "confidence 0.00"
+    would not tell the user whether the walls or the ambiguity failed)."""
+    from gridmerge.align import AlignOptions, _merit_reason
+    from gridmerge.verify import Verification
+
+    a = np.full((140, 300), np.nan)
+    _room(a, 20, 20)
+    _room(a, 180, 20)
+    b = np.full((120, 120), np.nan)
+    _room(b, 10, 10)
+    r = align(OccupancyGrid(a), OccupancyGrid(b), rng=0)
+    assert not r.success and r.confidence < 0.5
+    assert r.details["runner_up_ratio"] > 0.95
+    assert r.message.startswith("declined: confidence") and "a clearly different pose fits" in r.message
+    # Either room is the candidate: b's door side on a's door side.
+    assert r.candidate is not None and min(corner_error(r.candidate, SimilarityTransform(translation=(dx, 10)), b.shape)
+                                           for dx in (10, 170)) < 2.0
+
+    # Without a rival above 80 % of its score, a low confidence is its walls': no note.
+    v = Verification(0.99, 9000, 100, 0.9, 10000, 0.5, walls_a=300, walls_b=300, matched_a=270, matched_b=270)
+    assert _merit_reason(0, v, 0.3, AlignOptions(), False, False, 0.5) == "declined: confidence 0.30 below 0.5"
+    assert _merit_reason(0, v, 0.3, AlignOptions(), False, False, None) == "declined: confidence 0.30 below 0.5"
+    assert "fits 90% as well" in _merit_reason(0, v, 0.3, AlignOptions(), False, False, 0.9)

@@ -2130,8 +2130,10 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
         if spec.verified:
             by_structure = est.confidence is not None
             conf = float(est.confidence) if by_structure else _confidence(n_inl, v, est.transform.min_samples)
+            ratio = est.details.get("runner_up_ratio") if by_structure and not est.matched else None
             message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure,
-                                      scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched) or est.one_sided
+                                      scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched,
+                                      runner_up_ratio=ratio) or est.one_sided
             if not message and opts.max_crossing is not None:
                 # On the search's maps (cut, and despeckled as the search saw them).
                 crossed = crossing(ca, cb, in_cut, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
@@ -2486,17 +2488,20 @@ def _scale_ruled_out(scale_off: float, opts: AlignOptions) -> bool:
 
 
 def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool = True,
-                    scale_off: float = 0.0, matched: bool = False) -> str:
+                    scale_off: float = 0.0, matched: bool = False, runner_up_ratio: float | None = None) -> str:
     """Why a verified pose is declined ("" when it is not); ``scale_off``: its scale's
     disagreement with the maps' resolution ratio (:func:`_scale_disagreement`);
-    ``matched``: the keypoint matches confirm it (:attr:`Estimate.matched`).
+    ``matched``: the keypoint matches confirm it (:attr:`Estimate.matched`);
+    ``runner_up_ratio``: the best clearly different pose's score over its own, when its
+    confidence comes from the maps' structure (:func:`_structural_confidence`), so that a
+    confidence too low for that reason says so (:func:`_ambiguity_note`).
 
     A pose declined on its own merits (its walls, its confidence ...) says so first: the
     best of poses that all fail is often at a chance scale (for 46 of the 72 pairs of
     maps of two different places of simulated seeds 7-12), and "the scale disagrees;
     --any-scale" would send the user after the resolutions. Only a pose that would be
     taken but for its scale names the option."""
-    reason = _merit_reason(inliers, v, conf, opts, need_inliers, matched)
+    reason = _merit_reason(inliers, v, conf, opts, need_inliers, matched, runner_up_ratio)
     if not _scale_ruled_out(scale_off, opts):
         return reason
     if reason:
@@ -2547,7 +2552,7 @@ def _wall_shares(v: Verification) -> tuple[float, float] | None:
 
 
 def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool,
-                  matched: bool) -> str:
+                  matched: bool, runner_up_ratio: float | None = None) -> str:
     """:func:`_decline_reason` of a pose, its scale aside."""
     if need_inliers and inliers < opts.min_inliers:
         return f"declined: only {inliers} inlier matches (need {opts.min_inliers})"
@@ -2566,5 +2571,28 @@ def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions
         return (f"declined: only {min(shares):.0%} of one map's walls in the overlap lie on the other's walls "
                 f"(need {opts.min_wall_share:.0%} of each; the rest cross the other's free space)")
     if conf < opts.min_confidence:
-        return f"declined: confidence {conf:.2f} below {opts.min_confidence}"
+        return f"declined: confidence {conf:.2f} below {opts.min_confidence}" + _ambiguity_note(runner_up_ratio)
     return ""
+
+
+#: Above this runner-up ratio the confidence's ambiguity term is below its full value
+#: (:func:`_structural_confidence`: it falls from 1 at 0.8 to 0 at 1).
+_AMBIGUOUS_RATIO = 0.8
+
+
+def _ambiguity_note(runner_up_ratio: float | None) -> str:
+    """What a confidence lowered by a rival pose owes to it, for a decline message: ""
+    unless a clearly different pose scores more than :data:`_AMBIGUOUS_RATIO` of the
+    pose's own score.
+
+    Examples
+    --------
+    >>> _ambiguity_note(0.95)
+    ' (a clearly different pose fits 95% as well: repeated structure, or too little shared to tell)'
+    >>> _ambiguity_note(0.5), _ambiguity_note(None)
+    ('', '')
+    """
+    if runner_up_ratio is None or not runner_up_ratio > _AMBIGUOUS_RATIO:
+        return ""
+    return (f" (a clearly different pose fits {runner_up_ratio:.0%} as well: repeated structure, "
+            f"or too little shared to tell)")
