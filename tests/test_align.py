@@ -1725,3 +1725,4 @@ def test_a_confidence_lowered_by_a_rival_pose_says_so():
     assert _merit_reason(0, v, 0.3, AlignOptions(), False, False, 0.5) == "declined: confidence 0.30 below 0.5"
     assert _merit_reason(0, v, 0.3, AlignOptions(), False, False, None) == "declined: confidence 0.30 below 0.5"
     assert "fits 90% as well" in _merit_reason(0, v, 0.3, AlignOptions(), False, False, 0.9)
+    assert "fits as well or better" in _merit_reason(0, v, 0.0, AlignOptions(), False, False, 1.17)

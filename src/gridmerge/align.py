@@ -2589,10 +2589,12 @@ def _ambiguity_note(runner_up_ratio: float | None) -> str:
     --------
     >>> _ambiguity_note(0.95)
     ' (a clearly different pose fits 95% as well: repeated structure, or too little shared to tell)'
+    >>> _ambiguity_note(1.3)  # a quick score can beat the refined pose's
+    ' (a clearly different pose fits as well or better: repeated structure, or too little shared to tell)'
     >>> _ambiguity_note(0.5), _ambiguity_note(None)
     ('', '')
     """
     if runner_up_ratio is None or not runner_up_ratio > _AMBIGUOUS_RATIO:
         return ""
-    return (f" (a clearly different pose fits {runner_up_ratio:.0%} as well: repeated structure, "
-            f"or too little shared to tell)")
+    fits = f"{runner_up_ratio:.0%} as well" if runner_up_ratio < 0.995 else "as well or better"
+    return f" (a clearly different pose fits {fits}: repeated structure, or too little shared to tell)"
