@@ -849,6 +849,18 @@ def test_a_pose_off_the_resolutions_scale_is_brought_back_to_it():
     assert trusting_nothing.rescaled(off) == []
 
 
+def test_a_rescaled_pose_is_judged_when_it_removes_a_third_of_the_disagreement():
+    """HM3D seed 28's pair 32 (forty-sixth session): the pose 4.5 % off in scale agrees on
+    0.797 (quick score), brought to the ratio 0.871, a third of the disagreement removed
+    (36 %), not half: it is judged with the candidates now. Nudged poses still need half."""
+    from gridmerge.align import _NUDGE_HALVES, _RESCALE_GAIN, _removes_disagreement
+
+    assert _removes_disagreement(0.871, 0.797, _RESCALE_GAIN)
+    assert not _removes_disagreement(0.871, 0.797, _NUDGE_HALVES)
+    assert not _removes_disagreement(0.551, 0.485, _RESCALE_GAIN)  # Halmstad E5_10-E5_11: 13 %
+    assert _removes_disagreement(0.9, 0.8) and not _removes_disagreement(0.89, 0.8)  # half by default
+
+
 @pytest.mark.shared
 def test_a_keypoint_pose_stopped_at_a_wrong_scale_is_merged_at_the_resolutions_scale(shared_data):
     """Simulated seed 6, pair 46 (two robots in Halmstad E5_05, b at 1.2 times a's cell
