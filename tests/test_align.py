@@ -858,7 +858,7 @@ def test_a_rescaled_pose_is_judged_when_it_removes_a_third_of_the_disagreement()
     assert _removes_disagreement(0.871, 0.797, _RESCALE_GAIN)
     assert not _removes_disagreement(0.871, 0.797, _NUDGE_HALVES)
     assert not _removes_disagreement(0.551, 0.485, _RESCALE_GAIN)  # Halmstad E5_10-E5_11: 13 %
-    assert _removes_disagreement(0.9, 0.8) and not _removes_disagreement(0.89, 0.8)  # half by default
+    assert _removes_disagreement(0.9, 0.8, _NUDGE_HALVES) and not _removes_disagreement(0.89, 0.8, _NUDGE_HALVES)
 
 
 @pytest.mark.shared
@@ -1683,6 +1683,7 @@ def test_unsure_walls_needs_a_buildings_walls_below_a_sure_confidence():
     assert r.success and r.confidence >= SURE_CONFIDENCE and corner_error(r.transform, truth, b.shape) < 2.0
 
 
+@pytest.mark.shared
 def test_unsure_walls_declines_a_chance_pose_on_a_few_rooms_of_real_maps(shared_data):
     """Two robots' maps of a few rooms each in two real sessions of the E5 office
     (halmstad-partial, seed 1, case 46): the default method's best pose lies 117 px from

@@ -1312,7 +1312,7 @@ def _degrees_apart(u: float, v: float) -> float:
     return min(d, 180.0 - d)
 
 
-def _removes_disagreement(new: float, old: float, share: float = 0.5) -> bool:
+def _removes_disagreement(new: float, old: float, share: float) -> bool:
     """Whether a wall agreement of ``new`` removes at least ``share`` of the
     disagreement that ``old`` leaves (half: :data:`_NUDGE_HALVES`; a pose brought to the
     resolutions' scale: :data:`_RESCALE_GAIN`)."""
@@ -1974,7 +1974,7 @@ def _structural_confidence(wall: float, runner_up_ratio: float) -> float:
     56 Halmstad cross-building pairs, added later, 4 pass it.
     """
     w = min(1.0, max(0.0, (wall - 0.35) / 0.35))
-    d = min(1.0, max(0.0, (1.0 - runner_up_ratio) / 0.2))
+    d = min(1.0, max(0.0, (1.0 - runner_up_ratio) / _AMBIGUITY_SPAN))
     return math.sqrt(w * d)
 
 
@@ -2581,9 +2581,10 @@ def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions
     return ""
 
 
-#: Above this runner-up ratio the confidence's ambiguity term is below its full value
-#: (:func:`_structural_confidence`: it falls from 1 at 0.8 to 0 at 1).
-_AMBIGUOUS_RATIO = 0.8
+#: :func:`_structural_confidence`'s ambiguity term falls from 1 to 0 over the last this
+#: much of the runner-up ratio: above ``_AMBIGUOUS_RATIO`` it is below its full value.
+_AMBIGUITY_SPAN = 0.2
+_AMBIGUOUS_RATIO = 1.0 - _AMBIGUITY_SPAN
 
 
 def _ambiguity_note(runner_up_ratio: float | None) -> str:
