@@ -14,6 +14,7 @@ Each run that writes has its own folder, so the runs cannot disturb one another.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import math
 import os
@@ -32,6 +33,9 @@ import pytest
 import gridmerge
 from gridmerge import OccupancyGrid, load_map, save_map
 from gridmerge.fuse import FUSION_RULES
+
+#: The module (the package's ``align`` name is the function).
+align_module = importlib.import_module("gridmerge.align")
 
 #: A subprocess never takes longer than this (a hang fails one test, not the suite).
 TIMEOUT_S = 120
@@ -439,6 +443,18 @@ def test_help(args, runs):
         for option in ("--output", "--fusion", "--plot", "--force", "--save-mode", "--json"):
             assert option in proc.stdout
 
+
+
+def test_decline_help_states_the_rules_fixed_values(monkeypatch):
+    # The help of --unsure-walls and --max-crossing quotes values the flags do not set
+    # (the confidence that spares a pose, the walls that exempt one): read from align,
+    # so that the help follows a change of either.
+    from gridmerge.cli import _decline
+
+    monkeypatch.setattr(align_module, "SURE_CONFIDENCE", 0.85)
+    monkeypatch.setattr(align_module, "_CROSSING_EVIDENCE", 2500)
+    assert "confidence below 0.85 resting" in _decline.help_text("unsure_walls")
+    assert "fewer than 2500 overlap wall cells" in _decline.help_text("max_crossing")
 
 # ----------------------------------------------------------------------- align
 ALIGN_KEYS = {

@@ -33,9 +33,9 @@ _HELP = {
     "max_slide": "decline a pose that the walls do not fix: slid along the walls the maps share, either way, it keeps "
     "more than C of its wall agreement, 0 to 1 (default {d}; one straight wall or corridor holds a pose along it "
     "but not where on it); 1 declines only poses that both slid poses beat",
-    "max_crossing": "decline a pose resting on fewer than 3000 overlap wall cells when more than C of them stand "
+    "max_crossing": "decline a pose resting on fewer than {walls} overlap wall cells when more than C of them stand "
     "inside the other map's open space, 0 to 1 (default {d}; maps of two places laid room on room); 1 turns it off",
-    "unsure_walls": "decline a pose of confidence below 0.8 resting on fewer than N overlap wall cells (default {d}; "
+    "unsure_walls": "decline a pose of confidence below {sure:g} resting on fewer than N overlap wall cells (default {d}; "
     "a few rooms of a repetitive building agree in part by chance, a whole building does not); 0 turns it off",
 }
 
@@ -77,10 +77,12 @@ def metavar(field: str) -> str:
 
 
 def help_text(field: str) -> str:
-    """The flag's help, with AlignOptions' default."""
-    from ..align import AlignOptions
+    """The flag's help, with AlignOptions' default and the rules' fixed values (the
+    confidence above which ``--unsure-walls`` spares a pose, the walls that exempt a pose
+    from ``--max-crossing``), read from :mod:`gridmerge.align`."""
+    from ..align import _CROSSING_EVIDENCE, SURE_CONFIDENCE, AlignOptions
 
-    return _HELP[field].format(d=getattr(AlignOptions(), field))
+    return _HELP[field].format(d=getattr(AlignOptions(), field), sure=SURE_CONFIDENCE, walls=_CROSSING_EVIDENCE)
 
 
 def overrides(values: dict) -> dict:
