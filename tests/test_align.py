@@ -17,6 +17,60 @@ from gridmerge.features import Features
 # 2026-11-30 (``see_through=0``: scanner rays stopped at a source's unknown cells), the
 # pairs these mechanisms were found on.
 
+@pytest.mark.parametrize("first", ["helper", "judge"])
+def test_the_wall_scorer_is_made_once_by_whichever_thread_is_free_first(monkeypatch, first):
+    from concurrent.futures import ThreadPoolExecutor
+    import threading
+
+    module = importlib.import_module("gridmerge.align")
+    a, b, _ = samples.robot_pair(0)
+    made = []
+    real = module.WallScorer
+    held = threading.Event()
+
+    def counted(*args, **kwargs):
+        made.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, "WallScorer", counted)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="helper") as pool:
+        if first == "judge":
+            pool.submit(held.wait, 5)  # the helper is busy: the judge makes the scorer
+        judge = module._Judge(a, b, module.AlignOptions(), pool=pool)
+        judge.prepare()
+        if first == "helper":
+            judge._scorer_task.result()  # the helper has made it before the judge asks
+        scorer = judge.scorer
+        held.set()
+        judge.release()
+    assert len(made) == 1 and made[0].startswith("helper" if first == "helper" else "MainThread")
+    assert scorer.tolerance == module.AlignOptions().wall_tolerance
+
+def test_the_slide_measured_while_the_keypoints_settle_is_the_one_align_uses(monkeypatch):
+    # The judge's helper thread slides the pose the keypoints settle while its rivals
+    # are scored; align takes that measurement instead of sliding the pose again, and
+    # only for that very pose.
+    module = importlib.import_module("gridmerge.align")
+    a, b, _ = samples.robot_pair(0)
+    calls = []
+    real = module.slide
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(module, "slide", counted)
+    ahead = align(a, b)
+    assert ahead.success and ahead.details["walls"].startswith("skipped")  # settled by the keypoints
+    assert len(calls) == 1
+    monkeypatch.setattr(module._Judge, "slid", lambda self, t: None)  # not handed over
+    calls.clear()
+    again = align(a, b)
+    assert len(calls) == 2  # slid ahead, then again by align
+    assert again.details["slide"] == ahead.details["slide"]
+    np.testing.assert_array_equal(again.transform.params, ahead.transform.params)
+
+
 # The paper's Table I: exact 30 deg, (-86, -36) px, 0.95; its estimate was off by
 # 0.09 deg, 0.21 px (x), 0.11 px (y) and 0.0003 in scale.
 TABLE1_DEG, TABLE1_PX, TABLE1_SCALE = 0.09, 0.21, 0.0003

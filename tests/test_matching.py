@@ -77,6 +77,31 @@ def test_exhaustive_search_is_exact_on_integer_descriptors_and_breaks_ties_by_in
     np.testing.assert_allclose(dist, want_d, rtol=1e-9)
 
 
+
+def test_exhaustive_search_with_one_blas_thread_finds_the_same(monkeypatch):
+    # threads=1: the matrix product runs on one BLAS thread (a helper thread of align
+    # keeps the other core busy); the neighbours do not change.
+    import gridmerge.matching as matching
+    from threadpoolctl import threadpool_info
+
+    rng = np.random.default_rng(5)
+    d1 = np.round(255 * rng.random((200, 128)) ** 3).astype(np.float32)
+    d2 = np.round(255 * rng.random((150, 128)) ** 3).astype(np.float32)
+    seen = []
+    exhaustive = matching._exhaustive
+
+    def spy(*args):
+        seen.append({i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"})
+        return exhaustive(*args)
+
+    monkeypatch.setattr(matching, "_exhaustive", spy)
+    free = knn(d1, d2, 4, method="brute")
+    one = knn(d1, d2, 4, method="brute", threads=1)
+    np.testing.assert_array_equal(one[1], free[1])
+    np.testing.assert_array_equal(one[0], free[0])
+    assert seen[1] <= {1}  # empty when numpy's BLAS is not one threadpoolctl knows
+    assert seen[0] == {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}  # restored
+
 def test_flann_is_approximate_where_the_exhaustive_search_is_exact():
     rng = np.random.default_rng(4)
     d1 = np.round(255 * rng.random((400, 128)) ** 4).astype(np.float32)

@@ -70,3 +70,42 @@ def test_dask_local_cluster_merge_equals_serial(fleet3, serial_merge):
         with DaskExecutor(cluster.scheduler_address) as ex:
             assert ex.workers == 2
             _same(serial_merge, gridmerge.merge(fleet3, rng=3, executor=ex))
+
+
+def test_opencv_threads_split_restores_the_count_after_nested_and_concurrent_holders(monkeypatch):
+    import threading
+
+    import cv2
+
+    from gridmerge.parallel import opencv_threads_split
+
+    before = cv2.getNumThreads()
+    monkeypatch.setattr("os.cpu_count", lambda: 8)
+    cv2.setNumThreads(8)
+    try:
+        inside, go, done = [], threading.Event(), threading.Event()
+
+        def other():
+            with opencv_threads_split(2):
+                inside.append(cv2.getNumThreads())
+                go.set()
+                done.wait(5)
+
+        with opencv_threads_split(2):
+            assert cv2.getNumThreads() == 4  # half the cores
+            with opencv_threads_split(4):  # nested: the first holder's count stands
+                assert cv2.getNumThreads() == 4
+            worker = threading.Thread(target=other)
+            worker.start()
+            assert go.wait(5)
+        # The first holder left while the other still holds: not restored yet.
+        assert cv2.getNumThreads() == 4 and inside == [4]
+        done.set()
+        worker.join(5)
+        assert cv2.getNumThreads() == 8  # the last one out restores it
+        cv2.setNumThreads(1)
+        with opencv_threads_split(2):
+            assert cv2.getNumThreads() == 1  # never more than OpenCV had
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)

@@ -294,15 +294,22 @@ def _proposal_scores(src, dst, cand, cos, sin, tx, ty, growth, threshold, block)
 
     Squared distances are compared (both sides are non-negative), with in-place
     operations on blocks of ``block`` proposals small enough to stay in the CPU's cache:
-    ten times faster than ``np.hypot`` on whole blocks.
+    ten times faster than ``np.hypot`` on whole blocks. In float32, twice as fast as in
+    float64 (0.03 s instead of 0.06 s for 1500 proposals and 6000 correspondences):
+    positions of a few thousand pixels are good to a few ten-thousandths of a pixel
+    there, so only a correspondence that close to a proposal's tolerance can count
+    otherwise (the counts rank proposals; the hypotheses are refitted in float64).
     """
+    f = np.float32
     n = len(src)
-    sx, sy = np.ascontiguousarray(src[:, 0]), np.ascontiguousarray(src[:, 1])
-    dx, dy = np.ascontiguousarray(dst[:, 0]), np.ascontiguousarray(dst[:, 1])
-    cx, cy = src[cand, 0], src[cand, 1]
+    sx, sy = np.ascontiguousarray(src[:, 0], f), np.ascontiguousarray(src[:, 1], f)
+    dx, dy = np.ascontiguousarray(dst[:, 0], f), np.ascontiguousarray(dst[:, 1], f)
+    cx, cy = src[cand, 0].astype(f), src[cand, 1].astype(f)
+    cos, sin, tx, ty, growth = (np.asarray(v, f) for v in (cos, sin, tx, ty, growth))
+    threshold = f(threshold)
     block = max(1, int(block))
     score = np.zeros(len(cand))
-    bufs = [np.empty((min(block, len(cand)), n)) for _ in range(3)]
+    bufs = [np.empty((min(block, len(cand)), n), f) for _ in range(3)]
     hit = np.empty((min(block, len(cand)), n), dtype=bool)
     for i in range(0, len(cand), block):
         m = min(block, len(cand) - i)

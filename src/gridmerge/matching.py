@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 __all__ = ["knn", "match_nn", "match_snn", "match_mnn", "match_smnn"]
 
@@ -45,7 +46,8 @@ def _as_descriptors(d, binary: bool) -> np.ndarray:
 
 
 def knn(
-    desc1, desc2, k: int = 2, *, method: str = "flann", binary: bool | None = None, trees: int = 4, checks: int = 128, seed: int = 0
+    desc1, desc2, k: int = 2, *, method: str = "flann", binary: bool | None = None, trees: int = 4, checks: int = 128, seed: int = 0,
+    threads: int | None = None,
 ):
     """The ``k`` nearest neighbours in ``desc2`` of each row of ``desc1``.
 
@@ -55,6 +57,13 @@ def knn(
     the machine's matrix product). FLANN's randomized kd-trees draw from OpenCV's
     global random generator, which is seeded with ``seed`` just before the index is
     built, so results are repeatable.
+
+    ``threads``: at most this many BLAS threads for the exhaustive search's matrix
+    product (``None``: the BLAS library's own choice, usually one per core). Give 1
+    when another thread of the caller keeps the other cores busy: a BLAS thread per core
+    then waits for cores it cannot have (on two cores, with the other one busy, the
+    product of 3322 x 2709 SIFT descriptors took 0.06 s on two threads, 0.03 s on one).
+    The result does not depend on it.
 
     Returns
     -------
@@ -79,13 +88,28 @@ def knn(
         raise ValueError(f"unknown matching method {method!r} (use 'flann' or 'brute')")
     kk = min(k, d2.shape[0])
     if not binary and method == "brute":
-        dists[:, :kk], idxs[:, :kk] = _exhaustive(d1, d2, kk)
+        if threads is None:
+            dists[:, :kk], idxs[:, :kk] = _exhaustive(d1, d2, kk)
+        else:
+            with threadpool_limits(limits=max(1, int(threads)), user_api="blas"):
+                dists[:, :kk], idxs[:, :kk] = _exhaustive(d1, d2, kk)
         return dists, idxs
-    if binary:
-        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    else:  # FLANN: its index is built, from OpenCV's seeded generator, by knnMatch
-        matcher = cv2.FlannBasedMatcher({"algorithm": _FLANN_INDEX_KDTREE, "trees": int(trees)}, {"checks": int(checks)})
+    if not binary:
+        # FLANN's index, built from OpenCV's seeded generator and searched directly: what
+        # FlannBasedMatcher.knnMatch does, without a Python object per match (the same
+        # neighbours and distances; 0.01 s less for the 1585 x 1585 speed pair). It gives
+        # squared distances.
         cv2.setRNGSeed(int(seed))
+        index = cv2.flann_Index(d2, {"algorithm": _FLANN_INDEX_KDTREE, "trees": int(trees)})
+        found, sq = index.knnSearch(d1, kk, params={"checks": int(checks)})
+        found = np.asarray(found, dtype=int).reshape(n, kk)
+        ok = found >= 0
+        idxs[:, :kk] = np.where(ok, found, -1)
+        # The square root in float32, as OpenCV's matches carry it.
+        root = np.sqrt(np.maximum(np.asarray(sq, dtype=np.float32).reshape(n, kk), 0.0)).astype(float)
+        dists[:, :kk] = np.where(ok, root, np.inf)
+        return dists, idxs
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     for row in matcher.knnMatch(d1, d2, k=kk):
         for c, m in enumerate(row):
             dists[m.queryIdx, c] = m.distance
