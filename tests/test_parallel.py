@@ -1,5 +1,9 @@
 """Executors: serial, a local process pool and a Dask cluster give the same merge."""
 
+import platform
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -109,3 +113,50 @@ def test_opencv_threads_split_restores_the_count_after_nested_and_concurrent_hol
         assert cv2.getNumThreads() == 1
     finally:
         cv2.setNumThreads(before)
+
+
+_KEPT = """
+import os, sys
+import numpy as np
+from gridmerge.parallel import keep_freed_memory
+applied = keep_freed_memory() if sys.argv[1] == "keep" else False
+def resident_mb():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+x = np.ones(2_500_000)  # 20 MB
+before = resident_mb()
+del x
+print(applied, before - resident_mb())
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux" or platform.libc_ver()[0] != "glibc", reason="glibc's mallopt")
+def test_keep_freed_memory_keeps_a_freed_large_block_for_the_next():
+    # In a process of its own: it changes how the whole process allocates. By default
+    # glibc returns a freed 20 MB block to the system (the next one is fresh memory);
+    # kept, the process still holds it.
+    runs = {}
+    for mode in ("default", "keep"):
+        out = subprocess.run([sys.executable, "-c", _KEPT, mode], capture_output=True, text=True, check=True).stdout
+        applied, released = out.split()
+        runs[mode] = (applied == "True", float(released))
+    assert runs["keep"][0] and not runs["default"][0]
+    assert runs["default"][1] > 15.0
+    assert runs["keep"][1] < 5.0
+
+
+def test_keep_freed_memory_changes_nothing_without_glibc(monkeypatch):
+    import ctypes
+
+    from gridmerge.parallel import keep_freed_memory
+
+    monkeypatch.setattr(platform, "libc_ver", lambda *a, **k: ("musl", "1.2"))
+    assert keep_freed_memory() is False
+    monkeypatch.setattr(platform, "libc_ver", lambda *a, **k: ("glibc", "2.36"))
+    monkeypatch.setattr(platform, "system", lambda: "Linux")
+
+    def missing(*args, **kwargs):
+        raise OSError("no C library")
+
+    monkeypatch.setattr(ctypes, "CDLL", missing)
+    assert keep_freed_memory() is False

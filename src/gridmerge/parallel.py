@@ -32,7 +32,8 @@ from typing import Any, Callable, Iterable, Protocol, Sequence, runtime_checkabl
 
 from .errors import GridMergeError
 
-__all__ = ["Executor", "SerialExecutor", "ProcessExecutor", "DaskExecutor", "executor_for", "opencv_threads_split"]
+__all__ = ["Executor", "SerialExecutor", "ProcessExecutor", "DaskExecutor", "executor_for", "opencv_threads_split",
+           "keep_freed_memory"]
 
 
 @runtime_checkable
@@ -147,6 +148,47 @@ def opencv_threads_split(ways: int = 2):
             _SPLIT_STATE[0] -= 1
             if _SPLIT_STATE[0] == 0:
                 cv2.setNumThreads(_SPLIT_STATE[1])
+
+
+#: glibc's ``mallopt`` parameters (malloc.h).
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+
+def keep_freed_memory(mmap_threshold_mb: int = 32, trim_threshold_mb: int = 512) -> bool:
+    """Ask the C library's allocator to keep large freed blocks for reuse, for a process
+    that aligns many maps (a fleet merge, ``gridmerge bench``, a long-running node).
+
+    One alignment of two 1585 x 1585 maps touches about 180 MB of memory the process
+    has not used before (SIFT's pyramids, the refinement's fields, the scorer's tables).
+    By default glibc hands blocks of that size back to the system when they are freed,
+    so every alignment pays again for fresh pages (about 0.06-0.09 s of its 0.6 s on
+    this project's 2-core machine). With blocks of up to ``mmap_threshold_mb`` taken from
+    the heap, and up to ``trim_threshold_mb`` of free heap kept, the next alignment
+    reuses them: 0.49-0.50 s. The price is that memory: the process's resident size stays
+    up to ``trim_threshold_mb`` above what it uses. It changes the whole process, which
+    is why the library never calls it on its own; gridmerge's command line does, for
+    itself. The same as setting ``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_``
+    in the environment before the process starts.
+
+    Returns whether it applied (glibc only; ``False`` elsewhere, changing nothing).
+    """
+    import ctypes
+    import ctypes.util
+    import platform
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+    except OSError:
+        return False
+    mallopt = getattr(libc, "mallopt", None)
+    if mallopt is None:
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    mb = 1024 * 1024
+    return (mallopt(_M_MMAP_THRESHOLD, int(mmap_threshold_mb) * mb) == 1
+            and mallopt(_M_TRIM_THRESHOLD, int(trim_threshold_mb) * mb) == 1)
 
 
 class DaskExecutor(_Closing):

@@ -456,6 +456,21 @@ def test_decline_help_states_the_rules_fixed_values(monkeypatch):
     assert "confidence below 0.85 resting" in _decline.help_text("unsure_walls")
     assert "fewer than 2500 overlap wall cells" in _decline.help_text("max_crossing")
 
+
+def test_only_the_program_lets_the_allocator_keep_freed_memory(monkeypatch, capsys):
+    # gridmerge run as the program owns its process; main([...]) called by another
+    # program leaves that program's allocator alone.
+    from gridmerge.cli import main as cli_main
+
+    calls = []
+    monkeypatch.setattr(cli_main, "keep_freed_memory", lambda: calls.append(1) or True)
+    assert cli_main.main(["--version"]) == 0
+    assert calls == []
+    monkeypatch.setattr(sys, "argv", ["gridmerge", "--version"])
+    assert cli_main.main() == 0
+    assert calls == [1]
+    assert "gridmerge" in capsys.readouterr().out
+
 # ----------------------------------------------------------------------- align
 ALIGN_KEYS = {
     "success", "matrix", "rotation_deg", "scale", "translation_px", "metric",

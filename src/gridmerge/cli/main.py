@@ -29,6 +29,7 @@ from ..io.jsonable import finite
 from ..io.map_server import YAML_SUFFIXES, yaml_image_path
 from ..limits import DEFAULT_LIMITS, Limits, extractor_for
 from ..merge import PAIR_STRATEGIES, SCALE_CHECKS, merge
+from ..parallel import keep_freed_memory
 from ..samples import SAMPLE_KINDS, sample_outputs, write_sample
 from . import _decline
 from . import bench as bench_cli
@@ -488,7 +489,15 @@ _COMMANDS = {"align": _cmd_align, "merge": _cmd_merge, "sample": _cmd_sample, "b
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the exit code."""
+    """Run the command line; returns the exit code.
+
+    Run as the program (``argv`` None: the ``gridmerge`` command, ``python -m
+    gridmerge``), it first lets the allocator keep large freed blocks
+    (:func:`gridmerge.parallel.keep_freed_memory`): the process is gridmerge's own, and
+    a merge of many maps or a benchmark run aligns one pair after another. Called with
+    ``argv`` from another program, it leaves that program's allocator alone."""
+    if argv is None:
+        keep_freed_memory()
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     if hasattr(sys.stdout, "reconfigure"):
