@@ -1143,8 +1143,7 @@ class _Judge:
         return wall, best, kind, runner_up, verification.result()
 
     def _slide(self, t: AffineTransform) -> Slide | None:
-        return slide(self.a, self.b, t, tolerance=self.opts.wall_tolerance, fraction=_SLIDE_FRACTION,
-                     verification=self._verify(t))
+        return _slide_test(self.a, self.b, t, self.opts, self._verify(t))
 
     def slid(self, t: AffineTransform) -> tuple | None:
         """``(t, slide of t)`` when :meth:`settle` slid ``t`` ahead (:attr:`Estimate.slid`),
@@ -2204,8 +2203,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
                 if est.slid is not None and est.slid[0] is in_cut:  # measured by the search meanwhile
                     slid = est.slid[1]
                 else:
-                    slid = slide(ca, cb, in_cut, tolerance=opts.wall_tolerance, fraction=_SLIDE_FRACTION,
-                                 verification=est.verification)
+                    slid = _slide_test(ca, cb, in_cut, opts, est.verification)
                 if slid is not None:
                     slide_note = {"px": round(slid.distance, 1), "kept": round(slid.kept, 4)}
                     message = _slide_reason(slid, opts)
@@ -2574,6 +2572,14 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
         return f"{reason}; nor does its scale agree with the maps' resolutions ({scale_off:.0%} off)"
     return (f"declined: the scale disagrees with the maps' resolutions by {scale_off:.0%} "
             f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
+
+
+def _slide_test(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, opts: AlignOptions,
+                verification: Verification | None) -> Slide | None:
+    """The slide test of :attr:`AlignOptions.max_slide` on the search's maps: the one
+    call both :func:`align` and the judge's look-ahead (:meth:`_Judge.settle`) make, so
+    that a slide measured ahead is the one ``align`` would measure."""
+    return slide(a, b, t, tolerance=opts.wall_tolerance, fraction=_SLIDE_FRACTION, verification=verification)
 
 
 def _crossing_reason(crossed: Crossing, opts: AlignOptions) -> str:

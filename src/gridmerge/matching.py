@@ -23,6 +23,8 @@ Examples
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+
 import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -88,11 +90,9 @@ def knn(
         raise ValueError(f"unknown matching method {method!r} (use 'flann' or 'brute')")
     kk = min(k, d2.shape[0])
     if not binary and method == "brute":
-        if threads is None:
+        limit = nullcontext() if threads is None else threadpool_limits(limits=max(1, int(threads)), user_api="blas")
+        with limit:
             dists[:, :kk], idxs[:, :kk] = _exhaustive(d1, d2, kk)
-        else:
-            with threadpool_limits(limits=max(1, int(threads)), user_api="blas"):
-                dists[:, :kk], idxs[:, :kk] = _exhaustive(d1, d2, kk)
         return dists, idxs
     if not binary:
         # FLANN's index, built from OpenCV's seeded generator and searched directly: what
