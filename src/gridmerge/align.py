@@ -159,7 +159,9 @@ class AlignOptions:
         pair 49) was merged at confidence 0.77, its overlap open floor holding 6 wall
         cells of one map, all matched, and 30 of the other, 7 matched. Right merges can
         rest on little: simulated pair 50 of seed 3 is merged right with 18 of one map's
-        (at 20 it was declined). docs/benchmarks.md, eighteenth session.
+        (at 20 it was declined). docs/benchmarks.md, eighteenth session; "The decline
+        threshold" counts what higher values decline (``--min-overlap-walls`` on the
+        command line).
     min_wall_share : float
         Decline when, of either map's occupied cells in the overlap, fewer than this share
         lie within the tolerance of the other map's walls

@@ -330,6 +330,8 @@ BAD_INPUT = [
     ("unsure-walls-negative", _nothing, ["align", "a.yaml", "b.yaml", "--unsure-walls", "-5"], "0 or more"),
     ("unsure-walls-fraction", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--unsure-walls", "0.5"], "whole number"),
     ("unsure-walls-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--unsure-walls", "5"], "own rule"),
+    ("overlap-walls-negative", _nothing, ["align", "a.yaml", "b.yaml", "--min-overlap-walls", "-3"], "0 or more"),
+    ("overlap-walls-with-baseline", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--method", "orb", "--min-overlap-walls", "5"], "own rule"),
     # The baselines decline by their authors' rules: a threshold would be silently ignored.
     ("threshold-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--min-confidence", "0.4"], "own rule"),
     ("merge-threshold-with-baseline", _nothing,
@@ -379,6 +381,7 @@ def runs(sample_maps, tmp_path_factory):
     runner.add("merge-sift-strict", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--method", "sift", "--min-confidence", "1"], folder("merge-sift-strict"))
     runner.add("align-slide-strict", ["align", "a.yaml", "b.yaml", "--json", "--max-slide", "0"], sample_maps.folder)
     runner.add("align-crossing-strict", ["align", "a.yaml", "b.yaml", "--json", "--max-crossing", "0"], sample_maps.folder)
+    runner.add("align-overlap-walls-strict", ["align", "a.yaml", "b.yaml", "--json", "--min-overlap-walls", "100000"], sample_maps.folder)
     runner.add("align-negative-any-confidence", ["align", "neg_a.yaml", "neg_b.yaml", "--json", "--min-confidence", "0", "--one-sided-confidence", "0"],
                sample_maps.folder)
     f = folder("merge-unknown", "a")
@@ -574,6 +577,20 @@ def test_max_crossing_is_recorded_and_spares_a_pose_on_many_walls(runs):
     strict = parse_json(proc)
     assert strict["success"] and strict["transform"] == default["transform"]
     assert strict["details"]["crossing"] == default["details"]["crossing"]
+
+
+def test_min_overlap_walls_declines_a_pose_on_fewer_walls_whatever_its_confidence(runs):
+    # The sample pair's pose, merged at confidence 1.0 on thousands of wall cells of each
+    # map, is declined when asked for more walls than its overlap holds; the message
+    # says how many it holds and how many were asked for.
+    default = parse_json(runs.get("align-json").result)
+    assert default["success"] and default["confidence"] == 1.0
+    proc = runs.get("align-overlap-walls-strict").result
+    assert proc.returncode == 1, describe(proc)
+    strict = parse_json(proc)
+    held = min(default["verification"]["walls_a"], default["verification"]["walls_b"])
+    assert not strict["success"] and strict["candidate"] == default["candidate"]
+    assert strict["message"] == f"declined: the overlap holds only {held} wall cells of one map (need 100000 of each to judge the walls)"
 
 
 def test_no_threshold_merges_maps_of_two_places(runs):

@@ -1,6 +1,6 @@
 """The decline thresholds on the command line: ``--min-confidence``,
-``--one-sided-confidence``, ``--max-slide``, ``--max-crossing`` and ``--unsure-walls``,
-shared by ``align``, ``merge`` and ``bench``.
+``--one-sided-confidence``, ``--max-slide``, ``--max-crossing``, ``--unsure-walls`` and
+``--min-overlap-walls``, shared by ``align``, ``merge`` and ``bench``.
 
 They set :class:`gridmerge.align.AlignOptions` fields of gridmerge's own methods (those
 whose success the verification decides, :attr:`gridmerge.align.Method.verified`). The
@@ -23,6 +23,7 @@ FLAGS = {
     "--max-slide": "max_slide",
     "--max-crossing": "max_crossing",
     "--unsure-walls": "unsure_walls",
+    "--min-overlap-walls": "min_overlap_walls",
 }
 
 _HELP = {
@@ -37,6 +38,9 @@ _HELP = {
     "inside the other map's open space, 0 to 1 (default {d}; maps of two places laid room on room); 1 turns it off",
     "unsure_walls": "decline a pose of confidence below {sure:g} resting on fewer than N overlap wall cells (default {d}; "
     "a few rooms of a repetitive building agree in part by chance, a whole building does not); 0 turns it off",
+    "min_overlap_walls": "decline a pose whose overlap holds fewer than N wall cells of either map, whatever its "
+    "confidence (default {d}); higher declines more poses resting on a few walls, right and wrong: "
+    "docs/benchmarks.md, 'The decline threshold'",
 }
 
 
@@ -63,7 +67,7 @@ def cells(text: str) -> int:
 
 
 #: Fields whose flag takes a count of cells (``N``); the others take a number from 0 to 1 (``C``).
-_COUNTS = frozenset({"unsure_walls"})
+_COUNTS = frozenset({"unsure_walls", "min_overlap_walls"})
 
 
 def type_of(field: str):
