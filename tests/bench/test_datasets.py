@@ -624,3 +624,42 @@ def test_partial_robots_keep_the_real_walls_thickness(shared_data):
         assert ((face > 0.5) <= (thick > 0.5)).all()  # the face is kept
         assert ((thick > 0.5) <= ((face > 0.5) | (world.grid.data > 0.5))).all()  # only the session's own walls added
     assert np.array_equal(np.isnan(face) & ~(thick > 0.5), np.isnan(thick))  # no free cell added
+
+
+def test_a_bent_robot_map_moves_its_walls_by_at_most_the_bend():
+    """``bend``: robot b's map is bent (its walls moved by up to ``bend`` source cells, by
+    a smooth field) before it is turned and resampled; a's map, the case's other draws
+    and the recorded bend are as asked, and the rigid truth still carries b's walls
+    within ``bend`` cells (plus a cell of resampling) of the source's walls, but no
+    longer all within one cell."""
+    plain = datasets.simulated(n=1, seed=1, **SMALL)[0]
+    case = datasets.simulated(n=1, seed=1, bend=4.0, **SMALL)[0]
+    assert case.a == plain.a and case.b != plain.b
+    assert case.meta["bend"] == 4.0 and "bend" not in plain.meta
+    assert case.meta["rotation_deg"] == plain.meta["rotation_deg"] and case.meta["scale"] == plain.meta["scale"]
+    src = datasets.source_map(case.meta["source"])
+    dist = cv2.distanceTransform((~src.occupied()).astype(np.uint8), cv2.DIST_L2, 5)
+
+    def wall_distances(c):
+        ys, xs = np.nonzero(c.b.occupied())
+        q = np.array(c.meta["b_to_source"]) @ np.stack([xs, ys, np.ones_like(xs)]).astype(float)
+        sx, sy = np.rint(q[:2]).astype(int)
+        return dist[sy, sx]
+
+    d_plain, d_bent = wall_distances(plain), wall_distances(case)
+    assert np.quantile(d_plain, 0.95) <= 1.5
+    assert np.quantile(d_bent, 0.95) <= 4.0 + 1.5 and np.quantile(d_bent, 0.95) > 1.5
+
+
+def test_bend_is_checked_and_recorded_by_the_run(tmp_path):
+    with pytest.raises(GridMergeError, match="bend"):
+        datasets.simulated(n=1, bend=-1.0)
+    from gridmerge.bench import runner
+
+    run = runner.run(["hybrid"], datasets="simulated", n=1, seed=1, out_dir=tmp_path / "run", plots=False, memory=False,
+                     bend=2.0)
+    assert run.config["datasets"][0]["params"]["bend"] == 2.0
+    again = runner.rebuild_case(tmp_path / "run", "simulated/0000")
+    assert again.meta["bend"] == 2.0
+    with pytest.raises(GridMergeError, match="simulated data set only"):
+        runner.run(["hybrid"], datasets="paper", quick=True, out_dir=tmp_path / "paper", plots=False, memory=False, bend=2.0)

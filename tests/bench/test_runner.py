@@ -429,3 +429,19 @@ def test_moved_source_maps_are_found_by_name_and_checked_by_their_cells(named_ru
         runner.rebuild_case(bench, "simulated/0001", maps_dir=other)
     with pytest.raises(GridMergeError, match="source map not found"):
         runner.rebuild_case(bench, "simulated/0001", maps_dir=tmp_path / "nowhere")
+
+
+def test_cli_bend_is_one_line_when_wrong(tmp_path, capsys):
+    """``--bend PX`` bends the simulated set's robot b maps (datasets.simulated); a
+    negative bend, or bending a data set that does not simulate, is one line and no
+    results folder."""
+    from gridmerge.cli.main import main
+
+    for args, message in (
+        (["--dataset", "simulated", "--bend", "-1"], "0 or more"),
+        (["--dataset", "paper", "--bend", "2"], "for the simulated data set only"),
+    ):
+        code = main(["bench", *args, "--methods", "orb", "--no-plots", "--out", str(tmp_path / "bad")])
+        err = capsys.readouterr().err
+        assert code not in (0, 1) and message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+        assert not (tmp_path / "bad").exists()

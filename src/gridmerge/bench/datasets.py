@@ -508,12 +508,55 @@ def _crop_box(known: np.ndarray, margins) -> tuple[int, int, int, int]:
     return x0, y0, x1, y1
 
 
-def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg: float, scale: float, noise: float,
-                    thick: int = 0):
-    """The map a robot makes of ``wb`` from ``vps_b`` in its own frame: rotated by
-    ``rotation_deg``, shifted, cells ``scale`` times the source's, cropped, with noise.
+#: Wavelengths (source cells) of the smooth waves that bend a map (:func:`bent`).
+BEND_WAVELENGTHS = (400.0, 900.0)
 
-    Returns ``b, M, known_b_in_source``: ``M`` maps the map's pixels to the source's.
+
+def bent(seen: np.ndarray, bend: float, rng: np.random.Generator) -> np.ndarray:
+    """``seen`` (a robot's observations in the source's cells: free 0, occupied 1,
+    unknown NaN) bent as a SLAM map bends against another session's: each cell shows
+    what lies up to ``bend`` cells away, along a smooth displacement field (for each
+    axis, three plane waves of random direction, phase and wavelength in
+    :data:`BEND_WAVELENGTHS`, scaled so that the largest displacement is ``bend``;
+    nearest cell). The map's shape and resolution do not change, so the rigid
+    transform stays the truth, which the bent map no longer fits exactly: Halmstad's
+    Tango maps, hand-matched, leave 5-15 px of residual on 1585 x 1585 cells.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> seen = np.full((200, 300), np.nan, np.float32); seen[50:150, 50:250] = 0.0; seen[100, 50:250] = 1.0
+    >>> b = bent(seen, 3.0, np.random.default_rng(0))
+    >>> b.shape == seen.shape and bool(np.all(np.isnan(b[:40])))  # far from what was seen: unknown
+    True
+    >>> rows = np.nonzero(np.nanmax(np.nan_to_num(b, nan=0.0), axis=1) > 0.5)[0]
+    >>> bool(rows.min() >= 97 and rows.max() <= 103)  # the wall moved by 3 cells at most
+    True
+    """
+    h, w = seen.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    maps = []
+    for base in (xx, yy):
+        d = np.zeros((h, w), np.float32)
+        for _ in range(3):
+            lam = rng.uniform(*BEND_WAVELENGTHS)
+            ang, ph = rng.uniform(0.0, 2.0 * math.pi, size=2)
+            d += np.sin(2.0 * math.pi * (xx * math.cos(ang) + yy * math.sin(ang)) / lam + ph).astype(np.float32)
+        top = float(np.abs(d).max())
+        maps.append(base + d * np.float32(bend / top) if top > 0 else base)
+    return cv2.remap(np.ascontiguousarray(seen, dtype=np.float32), maps[0], maps[1], cv2.INTER_NEAREST,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+
+
+def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg: float, scale: float, noise: float,
+                    thick: int = 0, bend: float = 0.0):
+    """The map a robot makes of ``wb`` from ``vps_b`` in its own frame: rotated by
+    ``rotation_deg``, shifted, cells ``scale`` times the source's, cropped, with noise;
+    ``bend`` > 0: bent first (:func:`bent`; its field drawn from a generator spawned from
+    ``rng``, so that ``rng``'s own draws are those of the unbent map).
+
+    Returns ``b, M, known_b_in_source``: ``M`` maps the map's pixels to the source's
+    (the rigid part: the truth).
     """
     theta = math.radians(rotation_deg)
     A = _similarity(theta, scale)
@@ -526,7 +569,10 @@ def _robot_in_frame(wb: _World, vps_b, rng: np.random.Generator, *, rotation_deg
     pmin = p.min(axis=1) - pad
     M = A @ _shift(pmin[0], pmin[1])  # b canvas pixels -> source pixels
     shape = (int(math.ceil(p[1].max() - pmin[1] + pad)) + 1, int(math.ceil(p[0].max() - pmin[0] + pad)) + 1)
-    b_full = _observed_in_frame(wb.seen(vps_b, thick), M, shape, scale)
+    seen = wb.seen(vps_b, thick)
+    if bend > 0:
+        seen = bent(seen, bend, np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0]))
+    b_full = _observed_in_frame(seen, M, shape, scale)
     kb = ~np.isnan(b_full)
     bx0, by0, bx1, by1 = _crop_box(kb, rng.integers(5, 21, size=4))
     b_clean = b_full[by0:by1, bx0:bx1]
@@ -557,10 +603,12 @@ def _robot_maps(
     noise: float,
     world_b: Optional[_World] = None,
     thick: int = 0,
+    bend: float = 0.0,
 ):
     """Maps of robot a (the source's frame, cropped) and robot b (its own frame).
 
-    Robot b explores ``world_b`` (default: ``world``); ``thick``: as :meth:`_World.seen`. Returns ``a, b, b_to_source,
+    Robot b explores ``world_b`` (default: ``world``); ``thick``: as :meth:`_World.seen`;
+    ``bend``: b's map bent by up to that many source cells (:func:`bent`). Returns ``a, b, b_to_source,
     offset_a, known_b_in_source`` where ``b_to_source`` maps b's pixels to the pixels of
     its source map and ``offset_a`` is a's crop offset in ``world``.
     """
@@ -574,7 +622,8 @@ def _robot_maps(
     corner = src.pixel_to_metric([[x0 - 0.5, y1 - 0.5]])[0]
     a = OccupancyGrid(a_data, resolution=src.resolution, origin=(float(corner[0]), float(corner[1]), src.origin[2]))
 
-    b, M, kb_in_src = _robot_in_frame(wb, vps_b, rng, rotation_deg=rotation_deg, scale=scale, noise=noise, thick=thick)
+    b, M, kb_in_src = _robot_in_frame(wb, vps_b, rng, rotation_deg=rotation_deg, scale=scale, noise=noise, thick=thick,
+                                      bend=bend)
     return a, b, M, (x0, y0), ka, kb_in_src
 
 
@@ -779,6 +828,7 @@ def simulated(
     building_shapes: Sequence[Sequence[int]] = ((560, 760), (720, 960)),
     see_through: int = SEE_THROUGH,
     source_maps: Optional[Sequence] = None,
+    bend: float = 0.0,
 ) -> Dataset:
     """Simulated robot pairs with exact ground truth.
 
@@ -829,6 +879,13 @@ def simulated(
         distant parts of it; a single map too small for them is refused at once).
         ``sources`` is then ignored. Their paths and the SHA-256 of their cells are
         recorded in ``params["source_maps"]``, so that a run names the maps it used.
+    bend : float
+        Robot b's map bent by up to this many source cells before it is turned and
+        resampled (:func:`bent`), as real maps of two SLAM sessions bend against each
+        other; 0 (the default) keeps the set as it was. The truth stays the rigid
+        transform, which a bent map fits only within about ``bend`` cells (and b's far
+        corners farther): read the corner errors with that in mind. Recorded in
+        ``params["bend"]`` and each case's ``meta["bend"]`` when above 0.
 
     Returns
     -------
@@ -843,7 +900,12 @@ def simulated(
     see_through = int(see_through)
     if see_through < 0:
         raise GridMergeError(f"see_through must be >= 0, got {see_through}")
+    bend = float(bend)
+    if not (math.isfinite(bend) and bend >= 0.0):
+        raise GridMergeError(f"bend must be a number of cells >= 0, got {bend}")
     params: dict = {"see_through": see_through}
+    if bend > 0:
+        params["bend"] = bend
     notes: list = []
     if source_maps is not None:
         available, digests = _check_source_maps(source_maps, see_through)
@@ -870,10 +932,12 @@ def simulated(
     def build(k: int) -> Case:
         rng = np.random.default_rng([int(seed), int(k), 7])
         if plan.negative(k):
-            case = _negative_case(k, rng, available, data_key, shapes, see_through)
+            case = _negative_case(k, rng, available, data_key, shapes, see_through, bend)
         else:
-            case = _positive_case(k, rng, plan.tier(k), available, data_key, shapes, see_through)
+            case = _positive_case(k, rng, plan.tier(k), available, data_key, shapes, see_through, bend)
         case.meta["see_through"] = see_through
+        if bend > 0:
+            case.meta["bend"] = bend
         return case
 
     if source_maps is not None and len(available) == 1:
@@ -920,7 +984,7 @@ def _world_cached(name: str, data_key: Optional[str], see_through: int) -> _Worl
     return _World(_source_map(name, data_key), name, see_through)
 
 
-def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes, see_through: int) -> Case:
+def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes, see_through: int, bend: float = 0.0) -> Case:
     name = _pick_source(rng, available, shapes)
     world = _world(name, data_key, see_through)
     world._views.clear()
@@ -929,7 +993,7 @@ def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes, see_thr
     va, vb, _est, phi = _split_views(world, vps, rng, target, tier.overlap)
     rot = float(rng.uniform(-180.0, 180.0))
     scale = _log_uniform(rng, *tier.scale)
-    a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise)
+    a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise, bend=bend)
     walls = shared_walls(world.seen(va), world.seen(vb))  # the views are cached: no ray is cast again
     world._views.clear()
     truth = _shift(-off[0], -off[1]) @ M
@@ -952,7 +1016,7 @@ def _positive_case(k: int, rng, tier: Tier, available, data_key, shapes, see_thr
     return Case(cid, "simulated", a.replace(name=f"{cid} a"), b.replace(name=f"{cid} b"), truth, True, meta)
 
 
-def _negative_case(k: int, rng, available, data_key, shapes, see_through: int) -> Case:
+def _negative_case(k: int, rng, available, data_key, shapes, see_through: int, bend: float = 0.0) -> Case:
     tier = TIERS["medium"]
     rot = float(rng.uniform(-180.0, 180.0))
     scale = _log_uniform(rng, *tier.scale)
@@ -969,7 +1033,7 @@ def _negative_case(k: int, rng, available, data_key, shapes, see_through: int) -
     meta: dict = {"tier": "negative", "source": name, "rotation_deg": rot, "scale": scale, "noise": tier.noise, "range_px": RANGE_PX}
     if split is not None:
         va, vb, _, phi = split
-        a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise)
+        a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise, bend=bend)
         meta.update(negative_kind="distant-parts", overlap=measure_overlap(ka, kb), views=[len(va), len(vb)], direction_deg=phi)
     else:
         # Two different places: a from this source, b from another one.
@@ -982,7 +1046,8 @@ def _negative_case(k: int, rng, available, data_key, shapes, see_through: int) -
         vps_b = world_b.viewpoints(rng)
         order_b = np.argsort(vps_b @ rng.normal(size=2), kind="stable")
         vb = vps_b[order_b[: max(3, int(rng.uniform(0.4, 0.7) * len(vps_b)))]]
-        a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise, world_b=world_b)
+        a, b, M, off, ka, kb = _robot_maps(world, va, vb, rng, rotation_deg=rot, scale=scale, noise=tier.noise, world_b=world_b,
+                                           bend=bend)
         world_b._views.clear()
         meta.update(negative_kind="different-places", source_b=other, overlap=0.0, views=[len(va), len(vb)])
     world._views.clear()
@@ -1492,7 +1557,7 @@ def paper(seeds: Sequence[int] = (0,)) -> Dataset:
 
 # ----------------------------------------------------------------------- load
 def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = False, data_dir=None,
-         source_maps: Optional[Sequence] = None) -> Dataset:
+         source_maps: Optional[Sequence] = None, bend: float = 0.0) -> Dataset:
     """A data set by name, with the benchmark's default sizes.
 
     ``simulated``: ``n`` cases (default 60; 6 with ``quick``); ``halmstad-partial``: ``n``
@@ -1503,8 +1568,8 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     same with these environments only; ``paper``: seeds 0-4 (seed 0 with ``quick``);
     any of them followed by ``-swapped`` (``halmstad-swapped``): its cases with the two
     maps swapped (:func:`swapped`). ``source_maps`` (map files) are the simulated set's
-    source maps instead of the shared data's (:func:`simulated`); the other sets ignore
-    them.
+    source maps instead of the shared data's (:func:`simulated`), and ``bend`` bends its
+    robot b's maps (:func:`simulated`); the other sets ignore both.
 
     Raises
     ------
@@ -1513,9 +1578,10 @@ def load(name: str, *, seed: int = 0, n: Optional[int] = None, quick: bool = Fal
     """
     base, envs, swap = check_name(name)
     if swap:
-        return swapped(load(unswapped(name), seed=seed, n=n, quick=quick, data_dir=data_dir, source_maps=source_maps))
+        return swapped(load(unswapped(name), seed=seed, n=n, quick=quick, data_dir=data_dir, source_maps=source_maps, bend=bend))
     if base == "simulated":
-        return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir, source_maps=source_maps)
+        return simulated(n=(6 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir, source_maps=source_maps,
+                         bend=bend)
     if base == "halmstad-partial":
         return halmstad_partial(n=(3 if quick else 60) if n is None else n, seed=seed, data_dir=data_dir)
     if base == "halmstad":

@@ -122,7 +122,7 @@ def resolve_methods(methods: Union[str, Sequence[str], None]) -> tuple[list, lis
     return [m for m in names if m in METHODS], [m for m in names if m not in METHODS]
 
 
-def _resolve_datasets(datasets, *, seed, n, quick, data_dir, source_maps=None) -> tuple[list, list]:
+def _resolve_datasets(datasets, *, seed, n, quick, data_dir, source_maps=None, bend=0.0) -> tuple[list, list]:
     """``(Dataset list, notes)``; ``"all"`` skips the Halmstad pairs when the data is absent."""
     items = [datasets] if isinstance(datasets, (str, _datasets.Dataset)) else list(datasets)
     out, notes = [], []
@@ -145,7 +145,7 @@ def _resolve_datasets(datasets, *, seed, n, quick, data_dir, source_maps=None) -
                 continue
             sized = _datasets.unswapped(name) in _datasets.SEEDED
             out.append(_datasets.load(name, seed=seed, n=n if sized else None, quick=quick, data_dir=data_dir,
-                                      source_maps=source_maps))
+                                      source_maps=source_maps, bend=bend))
     return out, notes
 
 
@@ -284,6 +284,7 @@ def run(
     overwrite: bool = False,
     options: Optional[dict] = None,
     source_maps: Optional[Sequence] = None,
+    bend: float = 0.0,
 ) -> BenchRun:
     """Run every method on every case and write the results folder.
 
@@ -330,6 +331,10 @@ def run(
         Map files to simulate the robots in, instead of the shared data's source maps
         (the ``simulated`` data set only; :func:`~gridmerge.bench.datasets.simulated`).
         Their paths and digests are recorded in ``config.json``.
+    bend : float
+        Bend robot b's maps of the ``simulated`` data set by up to this many source cells
+        (:func:`~gridmerge.bench.datasets.simulated`; 0: as they were). Recorded in
+        ``config.json``.
 
     Returns
     -------
@@ -348,11 +353,13 @@ def run(
     if not registered:
         raise GridMergeError(f"no registered method among {', '.join(skipped) or 'the methods given'}")
     sets, notes = _resolve_datasets("all" if datasets is None else datasets, seed=seed, n=n, quick=quick, data_dir=data_dir,
-                                    source_maps=source_maps)
+                                    source_maps=source_maps, bend=bend)
     if not sets:
         raise GridMergeError("no data set to run")
     if source_maps is not None and not any(_datasets.unswapped(ds.name) == "simulated" for ds in sets):
         raise GridMergeError("source maps are for the simulated data set only: run it (--dataset simulated)")
+    if bend and not any(_datasets.unswapped(ds.name) == "simulated" for ds in sets):
+        raise GridMergeError("bending is for the simulated data set only: run it (--dataset simulated)")
     for ds in sets:
         notes.extend(ds.notes)
 
@@ -478,12 +485,13 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str, maps_dir=
         if base not in _datasets.DATASETS:
             continue
         sources = (entry.get("params") or {}).get("source_maps")
+        bend = float((entry.get("params") or {}).get("bend", 0.0))
         maps = [m["path"] if maps_dir is None else Path(maps_dir) / Path(m["path"]).name for m in sources] if sources else None
         if base in _datasets.SEEDED:
             head, _, number = case_id.partition("/")
             if head != name or not number.isdigit():
                 continue
-            ds = _datasets.load(name, seed=seed, n=int(entry["cases"]), data_dir=data_dir, source_maps=maps)
+            ds = _datasets.load(name, seed=seed, n=int(entry["cases"]), data_dir=data_dir, source_maps=maps, bend=bend)
             for was, now in zip(sources or [], ds.params.get("source_maps", [])):
                 if was.get("cells_sha256") != now["cells_sha256"]:
                     raise GridMergeError(f"source map {now['path']} is not the one the run used (its cells differ)")

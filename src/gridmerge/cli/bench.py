@@ -5,7 +5,7 @@
     gridmerge bench [run] [--dataset simulated|halmstad|halmstad-partial|paper|all ...] [--methods sift,ransac,...]
                           [--n N] [--seed S] [--quick] [--out DIR] [--data DIR] [--progress] [--force]
                           [--min-confidence C] [--one-sided-confidence C] [--max-slide C] [--max-crossing C]
-                          [--source-map MAP ...]
+                          [--source-map MAP ...] [--bend PX]
     gridmerge bench compare RUN1 RUN2
     gridmerge bench case RUN CASE_ID --out DIR [--method M] [--maps DIR]
 
@@ -28,6 +28,17 @@ from . import _decline
 __all__ = ["add_parser", "run", "ProgressBar"]
 
 EXIT_OK = 0
+
+
+def _cells_float(text: str) -> float:
+    """argparse type: a finite number of cells, 0 or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (np.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"must be a number of cells, 0 or more, got {text!r}")
+    return value
 EXIT_BAD_INPUT = 2
 
 _DATASET_CHOICES = ("simulated", "halmstad", "halmstad-partial", "paper", "all")
@@ -101,6 +112,9 @@ def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
     add("--source-map", "bench_source_maps", None, action="append", metavar="MAP",
         help="a map file (map_server YAML, PGM or PNG) to simulate the robots in, instead of the shared data's maps "
         "(the simulated data set only); repeatable: each simulated pair draws one of them")
+    add("--bend", "bench_bend", 0.0, type=_cells_float, metavar="PX",
+        help="bend robot b's simulated maps by up to PX source cells, as two SLAM sessions' maps bend against each "
+        "other (the simulated data set only; default 0: as they were)")
     add("--progress", "bench_progress", False, action="store_true", help="show a progress bar on stderr even when it is not a terminal")
     add("--force", "bench_force", False, action="store_true", help="replace the results in an existing folder")
     add("--no-plots", "bench_plots", True, action="store_false", help="do not draw the PNG plots")
@@ -230,7 +244,7 @@ def _cmd_run(args) -> int:
         ("bench_datasets", None), ("bench_methods", None), ("bench_n", None), ("bench_seed", 0),
         ("bench_quick", False), ("bench_out", None), ("bench_data", None), ("bench_progress", False),
         ("bench_force", False), ("bench_plots", True), ("bench_memory", True), ("bench_source_maps", None),
-        *(("bench_" + name, None) for name in _decline.FLAGS.values()),
+        ("bench_bend", 0.0), *(("bench_" + name, None) for name in _decline.FLAGS.values()),
     ):
         setattr(args, dest, _value(args, dest, default))
 
@@ -259,6 +273,7 @@ def _cmd_run(args) -> int:
         overwrite=args.bench_force,
         options=_decline.overrides({name: getattr(args, "bench_" + name) for name in _decline.FLAGS.values()}),
         source_maps=args.bench_source_maps,
+        bend=args.bench_bend,
     )
     for w in bench.warnings:
         print(f"gridmerge: warning: {w}", file=sys.stderr)
