@@ -1654,10 +1654,9 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
             # disagreement. Fresh simulated pair 23 of seed 38 (b's cells 0.83 of a's) was
             # settled 2.2 % off in scale, walls agreeing on 86 % (quick score), 15.4 px off
             # at b's corners; brought to the ratio and refined, 97 % and 0.7 px.
-            rescaled = judge.rescaled(best)
-            if rescaled and _removes_disagreement(judge.quick(rescaled[0]), wall, _RESCALE_GAIN):
-                wall, best, kind, runner_up, v = judge.settle(first + [(rescaled[0], "keypoints (at the resolutions' scale)")],
-                                                              slide_ahead=True)
+            rescaled = _at_the_ratio(judge, best, wall, kind)
+            if rescaled:
+                wall, best, kind, runner_up, v = judge.settle(first + rescaled, slide_ahead=True)
                 full_wall = _full_wall(v)
                 ratio, confidence = _judged(wall, runner_up, v)
                 settled = _settles(confidence, full_wall, ratio, opts)
@@ -1718,8 +1717,8 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         # in one part of the maps, and fitted the annotated points worse (E5_03-E5_06: 8.4
         # -> 13.6 px); at simulated pair 46 of seed 6 it removed 93 % of the disagreement,
         # at HM3D seed 28's pair 32 (4.5 % off in scale, 17.9 px at b's corners) 36 %.
-        rescaled = [(t, f"{kind} (at the resolutions' scale)") for t in judge.rescaled(best)]
-        if rescaled and _removes_disagreement(judge.quick(rescaled[0][0]), wall, _RESCALE_GAIN):
+        rescaled = _at_the_ratio(judge, best, wall, kind)
+        if rescaled:
             candidates = candidates + rescaled
             wall, best, kind, runner_up, v = judge.decide(candidates)
             ratio, confidence = _judged(wall, runner_up, v)
@@ -1875,6 +1874,16 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         details["confirmed_by"] = _confirmed_by(matched[0])
         return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched[2], matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+
+
+def _at_the_ratio(judge: _Judge, best: AffineTransform, wall: float, kind: str) -> list[tuple[AffineTransform, str]]:
+    """``[(pose, kind)]``: ``best`` (of quick score ``wall``, found as ``kind``) brought to
+    the maps' resolution ratio and refined (:meth:`_Judge.rescaled`), when that removes
+    :data:`_RESCALE_GAIN` of the walls' disagreement; ``[]`` otherwise."""
+    rescaled = judge.rescaled(best)
+    if rescaled and _removes_disagreement(judge.quick(rescaled[0]), wall, _RESCALE_GAIN):
+        return [(rescaled[0], f"{kind} (at the resolutions' scale)")]
+    return []
 
 
 def _settles(confidence: float, full_wall: float, ratio: float, opts: AlignOptions) -> bool:

@@ -356,9 +356,10 @@ def run(
                                     source_maps=source_maps, bend=bend)
     if not sets:
         raise GridMergeError("no data set to run")
-    if source_maps is not None and not any(_datasets.unswapped(ds.name) == "simulated" for ds in sets):
+    simulates = any(_datasets.unswapped(ds.name) == "simulated" for ds in sets)
+    if source_maps is not None and not simulates:
         raise GridMergeError("source maps are for the simulated data set only: run it (--dataset simulated)")
-    if bend and not any(_datasets.unswapped(ds.name) == "simulated" for ds in sets):
+    if bend and not simulates:
         raise GridMergeError("bending is for the simulated data set only: run it (--dataset simulated)")
     for ds in sets:
         notes.extend(ds.notes)
@@ -484,8 +485,8 @@ def rebuild_case(run: Union[BenchRun, str, os.PathLike], case_id: str, maps_dir=
         base = _datasets.unswapped(name)
         if base not in _datasets.DATASETS:
             continue
-        sources = (entry.get("params") or {}).get("source_maps")
-        bend = float((entry.get("params") or {}).get("bend", 0.0))
+        params = entry.get("params") or {}
+        sources, bend = params.get("source_maps"), float(params.get("bend", 0.0))
         maps = [m["path"] if maps_dir is None else Path(maps_dir) / Path(m["path"]).name for m in sources] if sources else None
         if base in _datasets.SEEDED:
             head, _, number = case_id.partition("/")

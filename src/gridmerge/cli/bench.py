@@ -28,17 +28,6 @@ from . import _decline
 __all__ = ["add_parser", "run", "ProgressBar"]
 
 EXIT_OK = 0
-
-
-def _cells_float(text: str) -> float:
-    """argparse type: a finite number of cells, 0 or more."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (np.isfinite(value) and value >= 0.0):
-        raise argparse.ArgumentTypeError(f"must be a number of cells, 0 or more, got {text!r}")
-    return value
 EXIT_BAD_INPUT = 2
 
 _DATASET_CHOICES = ("simulated", "halmstad", "halmstad-partial", "paper", "all")
@@ -66,6 +55,17 @@ def _taken(parser: argparse.ArgumentParser, flag: str) -> Optional[str]:
     """The destination of ``flag`` if ``parser`` already has it (from a parent), else None."""
     action = getattr(parser, "_option_string_actions", {}).get(flag)
     return None if action is None else action.dest
+
+
+def _cells_float(text: str) -> float:
+    """argparse type: a finite number of cells, 0 or more (``--bend``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (np.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"must be a number of cells, 0 or more, got {text!r}")
+    return value
 
 
 def _run_options(p: argparse.ArgumentParser, suppress: bool) -> dict:
