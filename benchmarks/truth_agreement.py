@@ -1,0 +1,147 @@
+"""How well the two maps of each case agree at the truth, and what a method made of them.
+
+A benchmark run reports success, declined and wrong; it does not say how many of its
+cases could have been merged at all. Real maps of one building, made in two sessions,
+may barely agree where they overlap (bending, furniture, doors, glass): at the truth
+their walls can coincide on a small share of the overlap, and no method that reads the
+maps can place them there with confidence. This script measures that ceiling, outside
+the benchmark:
+
+* for every positive case of the run folders given (``cases.jsonl``, method
+  ``--method``, ``hybrid`` by default), the case is built again
+  (:func:`gridmerge.bench.runner.rebuild_case`: the maps the run aligned);
+* its ``truth`` (for ``halmstad`` and ``halmstad-partial``, the annotation fit: 5-15 px
+  off in places, the maps bend) is polished by ICP on the walls
+  (:class:`gridmerge.refine.WallICP`); the polished pose is kept when it is still right
+  by the case's own measure: within the protocol's line on the annotated points
+  (``points_a``, ``points_b``, ``threshold_px`` of the case), or, without points, b's
+  corners within ``--reach`` px (default 10, the success line) of the truth;
+* the walls' agreement at that pose (:func:`gridmerge.verify.verify`, tolerance 2 cells,
+  as the decision uses) and the wall cells of either map in the overlap are recorded
+  with the run's outcome for the case.
+
+It prints the outcomes by the walls' agreement at the truth (Markdown) and writes one
+JSON line per case (``--out``). The forty-ninth session's numbers (docs/benchmarks.md,
+"What was tried") came from
+
+    python benchmarks/truth_agreement.py docs/results/partial/seed* --out truth.jsonl
+
+(about 50 minutes on two cores for the 576 positive cases of seeds 0-11).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from gridmerge.bench import runner
+from gridmerge.bench.metrics import halmstad_point_error
+from gridmerge.refine import WallICP
+from gridmerge.transforms import SimilarityTransform, corner_error
+from gridmerge.verify import verify
+
+#: Edges of the agreement bins of the printed table.
+BINS = (0.0, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 1.01)
+
+
+def outcome(record: dict) -> str:
+    """``"right"``, ``"wrong"`` or ``"declined"`` of a positive case's record."""
+    if record.get("success"):
+        return "right"
+    return "wrong" if record.get("aligned") else "declined"
+
+
+def at_truth(case, reach: float) -> dict:
+    """The walls' agreement of ``case``'s maps at its truth, polished by ICP on the walls
+    when the polished pose is still right by the case's measure (the annotated points
+    within the protocol's line, or b's corners within ``reach`` px of the truth)."""
+    truth = SimilarityTransform(np.asarray(case.truth, dtype=float))
+    polished = WallICP(case.a, case.b).polish(truth)
+    meta = case.meta
+    if meta.get("points_a") and meta.get("threshold_px") is not None:
+        error = halmstad_point_error(polished, np.asarray(meta["points_a"]), np.asarray(meta["points_b"]))
+        kept = bool(math.isfinite(error) and error <= float(meta["threshold_px"]))
+    else:
+        error = corner_error(polished, truth, case.b.shape)
+        kept = bool(error <= reach)
+    v = verify(case.a, case.b, polished if kept else truth)
+    return {
+        "wall_agreement": None if not math.isfinite(v.wall_agreement) else round(float(v.wall_agreement), 4),
+        "walls_a": v.walls_a,
+        "walls_b": v.walls_b,
+        "polished_error_px": round(float(error), 2),
+        "polished": kept,
+    }
+
+
+def rows(runs, method: str, reach: float):
+    """Yield one dict per positive case of ``runs`` (result folders)."""
+    for run in runs:
+        records = [json.loads(line) for line in open(Path(run) / "cases.jsonl")]
+        for r in records:
+            if r.get("method") != method or not r.get("positive"):
+                continue
+            case = runner.rebuild_case(run, r["case_id"])
+            yield {
+                "run": str(run),
+                "case_id": r["case_id"],
+                "tier": r.get("tier"),
+                "outcome": outcome(r),
+                "candidate_success": r.get("candidate_success"),
+                "confidence": r.get("confidence"),
+                **at_truth(case, reach),
+            }
+
+
+def table(found: list) -> str:
+    """Markdown: outcomes by the walls' agreement at the truth."""
+    lines = [
+        "| walls agree at the truth | cases | right | wrong | declined | of them, best candidate right |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for lo, hi in zip(BINS[:-1], BINS[1:]):
+        s = [f for f in found if f["wall_agreement"] is not None and lo <= f["wall_agreement"] < hi]
+        if not s:
+            continue
+        n = {k: sum(f["outcome"] == k for f in s) for k in ("right", "wrong", "declined")}
+        cand = sum(f["outcome"] == "declined" and bool(f["candidate_success"]) for f in s)
+        label = f"{lo:.0%}-{min(hi, 1.0):.0%}"
+        lines.append(f"| {label} | {len(s)} | {n['right']} | {n['wrong']} | {n['declined']} | {cand} |")
+    none = [f for f in found if f["wall_agreement"] is None]
+    if none:
+        lines.append(f"| no wall in the overlap | {len(none)} | {sum(f['outcome'] == 'right' for f in none)} | "
+                     f"{sum(f['outcome'] == 'wrong' for f in none)} | {sum(f['outcome'] == 'declined' for f in none)} | |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("runs", nargs="+", help="benchmark results folders")
+    p.add_argument("--method", default="hybrid")
+    p.add_argument("--reach", type=float, default=10.0, help="px the ICP polish of the truth may move b's corners (cases without annotated points)")
+    p.add_argument("--out", help="JSON lines, one per positive case")
+    args = p.parse_args(argv)
+    found = []
+    out = open(args.out, "w") if args.out else None
+    try:
+        for row in rows(args.runs, args.method, args.reach):
+            found.append(row)
+            if out is not None:
+                out.write(json.dumps(row) + "\n")
+                out.flush()
+            print(f"\r{len(found)} cases", end="", file=sys.stderr, flush=True)
+    finally:
+        if out is not None:
+            out.close()
+    print(file=sys.stderr)
+    print(table(found))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
