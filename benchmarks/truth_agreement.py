@@ -24,9 +24,9 @@ It prints the outcomes by the walls' agreement at the truth (Markdown) and write
 JSON line per case (``--out``). The forty-ninth session's numbers (docs/benchmarks.md,
 "What was tried") came from
 
-    python benchmarks/truth_agreement.py docs/results/partial/seed* --out truth.jsonl
+    python benchmarks/truth_agreement.py docs/results/partial/seed{0..11} --out truth.jsonl
 
-(about 50 minutes on two cores for the 576 positive cases of seeds 0-11).
+(about 45 minutes on two cores for the 576 positive cases of seeds 0-11).
 """
 
 from __future__ import annotations
