@@ -21,8 +21,8 @@ the benchmark:
   with the run's outcome for the case.
 
 It prints the outcomes by the walls' agreement at the truth (Markdown) and writes one
-JSON line per case (``--out``). The forty-ninth session's numbers (docs/benchmarks.md,
-"What was tried") came from
+JSON line per case (``--out``). The forty-ninth session's table (docs/benchmarks.md,
+"Small overlaps of real maps") came from
 
     python benchmarks/truth_agreement.py docs/results/partial/seed{0..11} --out truth.jsonl
 
@@ -35,7 +35,6 @@ import argparse
 import json
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -82,11 +81,11 @@ def at_truth(case, reach: float) -> dict:
 def rows(runs, method: str, reach: float):
     """Yield one dict per positive case of ``runs`` (result folders)."""
     for run in runs:
-        records = [json.loads(line) for line in open(Path(run) / "cases.jsonl")]
-        for r in records:
+        bench = runner.BenchRun.load(run)  # read once: rebuild_case takes it as it is
+        for r in bench.records:
             if r.get("method") != method or not r.get("positive"):
                 continue
-            case = runner.rebuild_case(run, r["case_id"])
+            case = runner.rebuild_case(bench, r["case_id"])
             yield {
                 "run": str(run),
                 "case_id": r["case_id"],
@@ -98,6 +97,13 @@ def rows(runs, method: str, reach: float):
             }
 
 
+def _table_row(label: str, cases: list) -> str:
+    """One Markdown row of :func:`table`: ``cases`` counted by outcome."""
+    n = {k: sum(f["outcome"] == k for f in cases) for k in ("right", "wrong", "declined")}
+    cand = sum(f["outcome"] == "declined" and bool(f["candidate_success"]) for f in cases)
+    return f"| {label} | {len(cases)} | {n['right']} | {n['wrong']} | {n['declined']} | {cand} |"
+
+
 def table(found: list) -> str:
     """Markdown: outcomes by the walls' agreement at the truth."""
     lines = [
@@ -106,16 +112,11 @@ def table(found: list) -> str:
     ]
     for lo, hi in zip(BINS[:-1], BINS[1:]):
         s = [f for f in found if f["wall_agreement"] is not None and lo <= f["wall_agreement"] < hi]
-        if not s:
-            continue
-        n = {k: sum(f["outcome"] == k for f in s) for k in ("right", "wrong", "declined")}
-        cand = sum(f["outcome"] == "declined" and bool(f["candidate_success"]) for f in s)
-        label = f"{lo:.0%}-{min(hi, 1.0):.0%}"
-        lines.append(f"| {label} | {len(s)} | {n['right']} | {n['wrong']} | {n['declined']} | {cand} |")
+        if s:
+            lines.append(_table_row(f"{lo:.0%}-{min(hi, 1.0):.0%}", s))
     none = [f for f in found if f["wall_agreement"] is None]
     if none:
-        lines.append(f"| no wall in the overlap | {len(none)} | {sum(f['outcome'] == 'right' for f in none)} | "
-                     f"{sum(f['outcome'] == 'wrong' for f in none)} | {sum(f['outcome'] == 'declined' for f in none)} | |")
+        lines.append(_table_row("no wall in the overlap", none))
     return "\n".join(lines)
 
 
