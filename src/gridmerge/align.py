@@ -1304,15 +1304,23 @@ class _Judge:
         scored = sorted(((score(t), t, kind) for t, kind in candidates), key=lambda c: -c[0])
         # Refine the most promising distinct candidates against the maps and score them again.
         chosen: list[list] = []  # [score, transform, kind]
-        for value, t, kind in scored:
-            if len(chosen) >= (_WALL_LED_REFINE_TOP if weighed else _REFINE_TOP):
-                break
-            if any(not self.far_apart(c[1], t, _SAME_POSE_PX) for c in chosen):
-                continue
-            if opts.refine:
-                t = self._refined(t, max_shift=_WALL_LED_REACH if weighed else _REFINE_REACH)
-                value, t = self.polished(t, score)
-            chosen.append([value, t, kind])
+        reach = _WALL_LED_REACH if weighed else _REFINE_REACH
+
+        def refine_best(ranked, n: int, label: str = "{}") -> None:
+            """Refine (and polish) the ``n`` first of ``ranked`` apart from those chosen."""
+            taken = 0
+            for value, t, kind in ranked:
+                if taken >= n:
+                    break
+                if any(not self.far_apart(c[1], t, _SAME_POSE_PX) for c in chosen):
+                    continue
+                if opts.refine:
+                    t = self._refined(t, max_shift=reach)
+                    value, t = self.polished(t, score)
+                chosen.append([value, t, label.format(kind)])
+                taken += 1
+
+        refine_best(scored, _WALL_LED_REFINE_TOP if weighed else _REFINE_TOP)
         if opts.refine:
             # A few more: the best by their walls within a coarse cell's tolerance. A
             # correlation peak lies a coarse cell or more from its pose, and on thin,
@@ -1320,16 +1328,7 @@ class _Judge:
             # hard tier's pair 21 of seed 22, a peak 9 px from the truth ranked 17th of
             # 27 (walls agreeing on 8 %; on 90 % once refined, 0.9 px from the truth).
             tolerant = sorted(((self.tolerant(t, weighed), t, kind) for _, t, kind in scored), key=lambda c: -c[0])
-            extra = 0
-            for _, t, kind in tolerant:
-                if extra >= _TOLERANT_REFINE:
-                    break
-                if any(not self.far_apart(c[1], t, _SAME_POSE_PX) for c in chosen):
-                    continue
-                t = self._refined(t, max_shift=_WALL_LED_REACH if weighed else _REFINE_REACH)
-                value, t = self.polished(t, score)
-                chosen.append([value, t, f"{kind} (ranked by its walls within {_TOLERANT_PX:g} px)"])
-                extra += 1
+            refine_best(tolerant, _TOLERANT_REFINE, f"{{}} (ranked by its walls within {_TOLERANT_PX:g} px)")
         chosen.sort(key=lambda c: -c[0])
         value, best, kind = chosen[0]
         verification = self._later(self._verify, best)  # while its rivals are sought
