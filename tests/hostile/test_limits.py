@@ -374,7 +374,25 @@ NOISE_SCRIPT = textwrap.dedent(
         with open("/proc/self/status") as f:
             return next(int(l.split()[1]) for l in f if l.startswith("VmHWM:")) / 1024
 
-    out = {}
+    def reference_cpu_s():
+        # A fixed mix of what the pipeline spends its time on (remapping, sorting, Python
+        # loops), timed in this process: the machine's speed today, so that the bound
+        # below holds on a slow day and still catches a blow-up.
+        import cv2
+        c = time.process_time()
+        rng = np.random.default_rng(0)
+        img = rng.random((1500, 1500), dtype=np.float32)
+        xs = np.arange(1500, dtype=np.float32) * 0.99
+        mx, my = np.meshgrid(xs + 3, xs + 2)
+        for _ in range(20):
+            cv2.remap(img, mx, my, cv2.INTER_LINEAR)
+        np.sort(rng.random(3_000_000))
+        s = 0
+        for i in range(2_000_000):
+            s += i
+        return time.process_time() - c
+
+    out = {"reference_cpu_s": min(reference_cpu_s() for _ in range(3))}
     # 1. A 3000 x 3000 noise map with the detection image capped at 1 M pixels.
     big = OccupancyGrid(np.random.default_rng(2).integers(0, 2, (3000, 3000)).astype(np.float32))
     f = FeatureExtractor(max_image_pixels=1_000_000)(big)
@@ -406,22 +424,23 @@ NOISE_SCRIPT = textwrap.dedent(
 def test_noise_maps_in_bounded_time_and_memory(h, tmp_path):
     """1500 x 1500 cells of sparse noise each: more SIFT keypoints per map than the cap,
     which keeps the strongest 20 000; every cell known to both, judged and declined in
-    about 25 s of CPU (CPU time is checked, which other processes on a busy machine
-    inflate little; wall time only against hangs); the detection-image cap bounds SIFT's
-    memory on larger maps. The bounds are a guard against a blow-up, not a speed test
-    (those are in ``benchmarks/``). Until the twenty-ninth session this was dense noise
+    about 85 times the CPU of a fixed reference workload timed in the same process (25 s
+    on a normal day, 60 to 66 s on a slow one). The bound is 150 times the reference: a
+    guard against a blow-up that holds on slow machines, not a speed test (those are in
+    ``benchmarks/``); until the fifty-first session it was 60 s of CPU, which a slow CI
+    machine exceeded. Wall time is bounded only by the subprocess's timeout, against
+    hangs. The detection-image cap bounds SIFT's memory on larger maps. Until the twenty-ninth session this was dense noise
     at 2000 x 2000 (50 to 60 s of CPU), now declined unsearched
     (:func:`test_maps_of_walls_everywhere_are_declined_unsearched`)."""
     proc = subprocess.run(
-        [sys.executable, "-c", NOISE_SCRIPT], capture_output=True, text=True, timeout=180, env=h.env(), cwd=tmp_path
+        [sys.executable, "-c", NOISE_SCRIPT], capture_output=True, text=True, timeout=400, env=h.env(), cwd=tmp_path
     )
     assert proc.returncode == 0, h.describe(proc)
     out = json.loads(proc.stdout)
     assert out["success"] is False, out
     assert out["features_capped"] is True
     assert out["keypoints"] == [DEFAULT_LIMITS.max_keypoints] * 2
-    assert out["cpu_s"] < 60.0, out
-    assert out["elapsed_s"] < 80.0, out
+    assert out["cpu_s"] < 150 * out["reference_cpu_s"], out
     # SIFT alone would need about 2 GB for the 3000 x 3000 map (220 bytes per pixel).
     assert out["capped_rss_mb"] < 900, out
     assert out["rss_mb"] < 2000, out
