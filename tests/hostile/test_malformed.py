@@ -165,6 +165,26 @@ def test_hostile_yaml_values(tmp_path, pair_folder, text, field):
         assert excinfo.value.field == field and f": {field}: " in message
 
 
+def test_deep_nesting_is_refused_before_parsing_and_shallow_nesting_is_read(tmp_path, pair_folder):
+    """Brackets nested deeper than any map YAML needs are refused unparsed (PyYAML took 3 s
+    on a slow machine to hit the recursion limit on 6 kB of them); a few levels are parsed
+    and judged as usual, and brackets in a quoted name do not count against a real map."""
+    shutil.copy2(pair_folder / "a.pgm", tmp_path / "a.pgm")
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("image: a.pgm\nresolution: " + "[" * 65 + "]" * 65 + "\n")
+    with pytest.raises(MapFormatError, match="nested too deeply"):
+        load_map(deep)
+    shallow = tmp_path / "shallow.yaml"
+    shallow.write_text("image: a.pgm\nresolution: " + "[" * 10 + "0.05" + "]" * 10 + "\n")
+    with pytest.raises(MapFormatError) as excinfo:
+        load_map(shallow)
+    assert excinfo.value.field == "resolution" and "nested" not in str(excinfo.value)
+    shutil.copy2(pair_folder / "a.pgm", tmp_path / "[[a]].pgm")
+    named = tmp_path / "named.yaml"
+    named.write_text('image: "[[a]].pgm"\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n')
+    assert load_map(named).resolution == 0.05
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
 def test_fifo_and_device_inputs_do_not_hang(tmp_path):
     os.mkfifo(tmp_path / "fifo.pgm")

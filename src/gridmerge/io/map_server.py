@@ -275,6 +275,22 @@ def _show(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+#: Flow collections (``[...]``, ``{...}``) nested deeper than this are refused before
+#: parsing. A map YAML nests none; PyYAML's pure-Python parser takes seconds to reach
+#: Python's recursion limit on a few kilobytes of brackets.
+_MAX_FLOW_DEPTH = 64
+
+
+def _flow_depth(raw: bytes) -> int:
+    """The deepest nesting of ``[``/``{`` in ``raw``, quotes not excepted (an upper bound
+    on the YAML's flow nesting where brackets are balanced)."""
+    b = np.frombuffer(raw, np.uint8)
+    if b.size == 0:
+        return 0
+    step = np.isin(b, (ord("["), ord("{"))).astype(np.int32) - np.isin(b, (ord("]"), ord("}"))).astype(np.int32)
+    return int(np.cumsum(step).max())
+
+
 def _read_yaml(path: Path, max_bytes: int) -> Any:
     with open_input(path, "a map YAML file") as fh:
         raw = _read_at_most(fh, max_bytes + 1)
@@ -290,6 +306,8 @@ def _read_yaml(path: Path, max_bytes: int) -> Any:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:
         raise MapFormatError("not a YAML text file (binary data)", path=path) from None
+    if _flow_depth(raw) > _MAX_FLOW_DEPTH:
+        raise MapFormatError("invalid YAML: nested too deeply", path=path)
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
