@@ -20,7 +20,8 @@ def pytest_configure(config):
     # working tree. (This process is not affected: Python reads both settings at start.)
     if os.environ.get("PYTHONDONTWRITEBYTECODE") and not os.environ.get("PYTHONPYCACHEPREFIX"):
         os.environ.pop("PYTHONDONTWRITEBYTECODE")
-        os.environ["PYTHONPYCACHEPREFIX"] = os.path.join(tempfile.gettempdir(), f"gridmerge-test-pycache-{getattr(os, 'getuid', lambda: 0)()}")
+        user = getattr(os, "getuid", lambda: 0)()
+        os.environ["PYTHONPYCACHEPREFIX"] = os.path.join(tempfile.gettempdir(), f"gridmerge-test-pycache-{user}")
 
 
 @pytest.fixture

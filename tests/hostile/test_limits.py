@@ -429,9 +429,9 @@ def test_noise_maps_in_bounded_time_and_memory(h, tmp_path):
     guard against a blow-up that holds on slow machines, not a speed test (those are in
     ``benchmarks/``); until the fifty-first session it was 60 s of CPU, which a slow CI
     machine exceeded. Wall time is bounded only by the subprocess's timeout, against
-    hangs. The detection-image cap bounds SIFT's memory on larger maps. Until the twenty-ninth session this was dense noise
-    at 2000 x 2000 (50 to 60 s of CPU), now declined unsearched
-    (:func:`test_maps_of_walls_everywhere_are_declined_unsearched`)."""
+    hangs. The detection-image cap bounds SIFT's memory on larger maps. Until the
+    twenty-ninth session this was dense noise at 2000 x 2000 (50 to 60 s of CPU), now
+    declined unsearched (:func:`test_maps_of_walls_everywhere_are_declined_unsearched`)."""
     proc = subprocess.run(
         [sys.executable, "-c", NOISE_SCRIPT], capture_output=True, text=True, timeout=400, env=h.env(), cwd=tmp_path
     )
