@@ -276,8 +276,9 @@ def test_half_resolution_fields_sample_the_full_resolution_ones():
     # Reduced cell (x, y) is cell (2x, 2y); the prefilter and the smaller blur together
     # smooth as much as the full-resolution blur.
     a, _, _ = samples.robot_pair(1)
-    full = _a_field(a, _whole(a), 1, 3.0)
-    half = _a_field(a, _whole(a), 2, 3.0)
+    # (Field, x and y gradients and smoothed known mask, interleaved: channels last.)
+    full = np.moveaxis(_a_field(a, _whole(a), 1, 3.0), -1, 0)
+    half = np.moveaxis(_a_field(a, _whole(a), 2, 3.0), -1, 0)
     h, w = half[0].shape
     assert (h, w) == ((a.height + 1) // 2, (a.width + 1) // 2)
     inside = full[3][::2, ::2] > 0.99  # well inside the known area

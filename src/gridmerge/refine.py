@@ -145,11 +145,12 @@ def _level_sigma(sigma: float, factor: int) -> float:
     return math.sqrt(max(sigma * sigma - pre * pre, 0.25 * factor * factor)) / factor
 
 
-def _a_field(grid: OccupancyGrid, box, factor: int, sigma: float, planes=None):
-    """Field, x and y gradients, smoothed known mask of ``box`` (float32 images).
+def _a_field(grid: OccupancyGrid, box, factor: int, sigma: float, planes=None) -> np.ndarray:
+    """Field, x and y gradients and smoothed known mask of ``box``: one ``(H, W, 4)``
+    float32 image, interleaved so that one bilinear lookup reads all four at a point.
     ``planes``: :func:`_planes` of that box, when already computed."""
     k, v = planes if planes is not None else _planes(grid, box, factor)
-    return _smoothed(k, v, _level_sigma(sigma, factor))
+    return cv2.merge(_smoothed(k, v, _level_sigma(sigma, factor)))
 
 
 def _b_points(grid: OccupancyGrid, box, factor: int, sigma: float, planes=None):
@@ -189,13 +190,10 @@ def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     # remap wants maps shaped like an image of fewer than 32767 rows: fold the points.
     width = 1024
     rows = max(1, -(-n // width))
-    mx = np.full(rows * width, -10.0, dtype=np.float32)
-    my = np.full(rows * width, -10.0, dtype=np.float32)
-    mx[:n], my[:n] = xy[:, 0], xy[:, 1]
-    out = cv2.remap(
-        img, mx.reshape(rows, width), my.reshape(rows, width), interpolation=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=0.0,
-    )
+    m = np.full((rows * width, 2), -10.0, dtype=np.float32)
+    m[:n] = xy
+    out = cv2.remap(img, m.reshape(rows, width, 2), None, interpolation=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
     return out.reshape(rows * width, -1)[:n] if img.ndim == 3 else out.reshape(-1)[:n]
 
 
@@ -548,19 +546,18 @@ def refine_direct(
                 pick = _evenly(len(xs), max_points)
                 xs, ys, target = xs[pick], ys[pick], target[pick]
         pts = np.stack([xs, ys], axis=1).astype(np.float64)
+        pts_x, pts_y = pts[:, 0].copy(), pts[:, 1].copy()
         npts = len(pts)
         # This level's pixels: reduced pixels of a's and b's boxes.
         to_a = np.linalg.inv(_scaling(fa, a_box[:2]))
         from_b = _scaling(fb, b_box[:2])
         shape_b = (b.shape[0] / fb, b.shape[1] / fb)
 
-        fld, gxa, gya, ka = field
-
         def residuals(params):
-            q = pts @ params[:2, :2].T + params[:2, 2]
-            valid = _sample(ka, q) > 0.9
-            r = _sample(fld, q).astype(np.float64) - target
-            return q, r, valid
+            """``(gradients, r, valid)`` at the cells moved by ``params``: the field's
+            ``(N, 2)`` gradients, the residuals and where a's smoothed known mask holds."""
+            at = _sample(field, pts @ params[:2, :2].T + params[:2, 2])
+            return at[:, 1:3], at[:, 0].astype(np.float64) - target, at[:, 3] > 0.9
 
         def robust_rms(r, valid):
             if not valid.any():
@@ -582,13 +579,13 @@ def refine_direct(
             rms_before = robust_rms(r0, v0)
         current = residuals(q_params)
         for _ in range(iterations):
-            q, r, valid = current
+            grad, r, valid = current
             if valid.sum() < 20:
                 break
-            gx = _sample(gxa, q[valid]).astype(np.float64)
-            gy = _sample(gya, q[valid]).astype(np.float64)
+            g = grad[valid]
+            gx, gy = g[:, 0].astype(np.float64), g[:, 1].astype(np.float64)
             rv = r[valid]
-            px, py = pts[valid, 0], pts[valid, 1]
+            px, py = pts_x[valid], pts_y[valid]
             # Parameters (sa, sb, tx, ty) of [[sa, -sb, tx], [sb, sa, ty]].
             j = np.stack([gx * px + gy * py, -gx * py + gy * px, gx, gy], axis=1)
             absr = np.abs(rv)
