@@ -205,7 +205,7 @@ def _cached(cache: dict | None, key, compute):
 
 
 def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bilinear values of ``img`` (``(H, W)`` or ``(H, W, C)``) at ``(N, 2)`` points (0 outside)."""
+    """``(N, C)`` bilinear values of ``img`` (``(H, W, C)``) at ``(N, 2)`` points (0 outside)."""
     n = len(xy)
     # remap wants maps shaped like an image of fewer than 32767 rows: fold the points.
     width = 1024
@@ -214,7 +214,7 @@ def _sample(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     m[:n] = xy
     out = cv2.remap(img, m.reshape(rows, width, 2), None, interpolation=cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    return out.reshape(rows * width, -1)[:n] if img.ndim == 3 else out.reshape(-1)[:n]
+    return out.reshape(rows * width, -1)[:n]
 
 
 def _corner_shift(t0: np.ndarray, t1: np.ndarray, shape) -> float:
