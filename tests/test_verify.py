@@ -4,15 +4,22 @@ from gridmerge import OccupancyGrid
 from gridmerge.verify import despeckle
 
 
-def test_despeckle_frees_isolated_hits_only():
+def test_despeckle_makes_isolated_hits_unknown_only():
     d = np.zeros((7, 7))
     d[1, 1] = 1.0  # isolated hit
     d[4, 2:6] = 1.0  # a wall
+    d[6, 0] = d[5, 1] = 1.0  # two hits touching diagonally: a wall, however short
     d[0, 6] = np.nan
+    d[2, 6] = 0.3  # a graded value, kept
     g = OccupancyGrid(d)
     out = despeckle(g)
-    assert out.data[1, 1] == 0.0
+    assert np.isnan(out.data[1, 1])
     np.testing.assert_array_equal(out.data[4], g.data[4])
+    assert out.data[6, 0] == 1.0 and out.data[5, 1] == 1.0
+    assert np.count_nonzero(np.isnan(out.data)) == 2  # the hit and the cell unknown before
+    unchanged = np.ones(d.shape, bool)
+    unchanged[1, 1] = False
+    np.testing.assert_array_equal(out.data[unchanged], g.data[unchanged])
     assert np.isnan(out.data[0, 6]) and g.data[1, 1] == 1.0  # input untouched
     clean = OccupancyGrid(np.zeros((3, 3)))
     assert despeckle(clean) is clean
@@ -187,8 +194,10 @@ def test_despeckle_keeps_a_valid_read_only_grid():
     d = np.zeros((9, 9), np.float32)
     d[4, 4] = 1.0
     out = despeckle(OccupancyGrid(d))
-    assert out.data[4, 4] == 0.0 and not out.data.flags.writeable
-    assert out.resolution == 0.05 and out == OccupancyGrid(np.zeros((9, 9)))
+    assert np.isnan(out.data[4, 4]) and not out.data.flags.writeable
+    unknown = np.zeros((9, 9))
+    unknown[4, 4] = np.nan
+    assert out.resolution == 0.05 and out == OccupancyGrid(unknown)
 
 
 def test_near_is_the_distance_transforms_own_threshold():

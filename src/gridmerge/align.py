@@ -309,7 +309,7 @@ class AlignOptions:
     second_look : float
         ``"hybrid"``: when the keypoints-first stage does not settle the pose, SIFT looks
         at both maps again (as the search sees them: cut to their known cells, isolated
-        hits freed) drawn blurred by a Gaussian of this many cells, and the matches of
+        hits made unknown) drawn blurred by a Gaussian of this many cells, and the matches of
         those keypoints add pose hypotheses to the search (those whose scale the maps'
         resolutions allow, :attr:`max_scale_disagreement`). Blurred walls are wider and
         their corners rounder, so the detector finds other keypoints on fragmentary
@@ -832,7 +832,7 @@ def _blurred_extractor(opts: AlignOptions) -> FeatureExtractor:
 
 def _look_twice(grid: OccupancyGrid, features: Features, opts: AlignOptions) -> Features:
     """``features`` with the blurred keypoints of ``grid`` as the hybrid search finds them
-    (the map cut to its known cells, isolated hits freed; in the map's pixels)."""
+    (the map cut to its known cells, isolated hits made unknown; in the map's pixels)."""
     if opts.second_look <= 0:
         return features
     crop, offset = _working_map(grid)
@@ -2586,7 +2586,7 @@ def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True)
     """The maps as the verified methods judge them: ``(ca, oa, cb, ob)``.
 
     Each map cut to its known cells (plus a margin: real maps are mostly unknown), with
-    the cut's pixel offset, and with isolated hits freed when ``despeckled`` (they are
+    the cut's pixel offset, and with isolated hits made unknown when ``despeckled`` (they are
     not walls). Map transforms between the cuts back with :func:`crop_to_full`.
     """
     ca, oa = _working_map(a, despeckled)

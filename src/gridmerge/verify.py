@@ -104,11 +104,15 @@ def acceptance_index(p: np.ndarray, q: np.ndarray, *, occupied: float = OCCUPIED
 
 
 def despeckle(grid: OccupancyGrid) -> OccupancyGrid:
-    """``grid`` with isolated occupied cells (no occupied 8-neighbour) made free.
+    """``grid`` with isolated occupied cells (no occupied 8-neighbour) made unknown.
 
-    Single spurious hits are scattered over the free space of real and simulated maps;
-    they are not walls, and judging an alignment by them only adds noise. Returns ``grid``
-    itself when there is none.
+    Single hits are scattered over the free space of real and simulated maps. Some are
+    noise, but many are walls seen sparsely (far from the robot, at a grazing angle):
+    neither is a wall to judge an alignment by. Made unknown, they count for nothing;
+    made free (as until the fifty-fourth session), a sparse true wall became free space
+    where the other map has its wall, and the true pose agreed less than one a few
+    cells off (docs/benchmarks.md, fifty-third and fifty-fourth sessions). Returns
+    ``grid`` itself when there is none.
     """
     occ = grid.occupied().view(np.uint8)
     if not occ.any():
@@ -119,10 +123,10 @@ def despeckle(grid: OccupancyGrid) -> OccupancyGrid:
     if not isolated.any():
         return grid
     data = grid.data.copy()
-    data[isolated] = 0.0
+    data[isolated] = np.nan
     if data.dtype != np.float32:
         return grid.replace(data=data)
-    # The values are the grid's own, some set to 0: valid as they are, so no second
+    # The values are the grid's own, some made unknown: valid as they are, so no second
     # validation pass over a possibly huge map.
     data.flags.writeable = False
     out = copy.copy(grid)

@@ -279,17 +279,17 @@ def test_options_reach_gridmerge_methods_only(monkeypatch):
 def test_a_run_with_options_records_and_applies_them(runs, tmp_path):
     _, default, _ = runs  # sift on the tiny cases, seed 3, default options
     strict = runner.run("sift", _tiny(), seed=3, out_dir=tmp_path / "strict", plots=False, memory=False,
-                        options={"min_confidence": 0.999})
-    assert strict.config["options"] == {"min_confidence": 0.999}
+                        options={"min_confidence": 0.9995})
+    assert strict.config["options"] == {"min_confidence": 0.9995}
     assert default.config["options"] == {}
-    assert "`min_confidence` = 0.999" in (tmp_path / "strict" / "results.md").read_text()
+    assert "`min_confidence` = 0.9995" in (tmp_path / "strict" / "results.md").read_text()
     # The same candidates, judged against the higher threshold.
     for d, s in zip(default.records, strict.records):
         assert d["case_id"] == s["case_id"] and d["confidence"] == s["confidence"]
-        assert s["aligned"] == (d["aligned"] and d["confidence"] >= 0.999)
+        assert s["aligned"] == (d["aligned"] and d["confidence"] >= 0.9995)
     assert any(d["aligned"] and not s["aligned"] for d, s in zip(default.records, strict.records))
     text = runner.compare(default, strict)
-    assert "run 1 defaults; run 2 `min_confidence` = 0.999" in text
+    assert "run 1 defaults; run 2 `min_confidence` = 0.9995" in text
     assert "Options of" not in runner.compare(default, default)
 
 
