@@ -1,7 +1,6 @@
 import importlib
 import json
 import math
-import re
 from dataclasses import replace
 
 import cv2
@@ -1343,10 +1342,10 @@ def test_polishing_does_not_slide_a_chance_pose_into_a_merge(monkeypatch):
     # isolated hits freed).
     r = align(a, b, rng=0, search_from="a", one_sided_confidence=None, unsure_walls=None)
     assert not r.success and "stand inside the other map's open space" in r.message
-    # And at confidence 0.55-0.59 it rests on about 2400 wall cells, not a building's.
+    # And at confidence 0.55 it rests on 2367 wall cells (2397 with isolated hits freed),
+    # not a building's.
     r = align(a, b, rng=0, search_from="a", one_sided_confidence=None, max_crossing=None)
-    cells = re.search(r"on (\d+) overlap wall cells; below 0.8 a pose needs 10000", r.message)
-    assert not r.success and cells and 2000 < int(cells.group(1)) < 3000, r.message
+    assert not r.success and "on 2367 overlap wall cells; below 0.8" in r.message
 
 
 def _one_side(transform, confidence, source="walls"):

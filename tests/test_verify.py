@@ -15,8 +15,6 @@ def test_despeckle_makes_isolated_hits_unknown_only():
     out = despeckle(g)
     assert np.isnan(out.data[1, 1])
     np.testing.assert_array_equal(out.data[4], g.data[4])
-    assert out.data[6, 0] == 1.0 and out.data[5, 1] == 1.0
-    assert np.count_nonzero(np.isnan(out.data)) == 2  # the hit and the cell unknown before
     unchanged = np.ones(d.shape, bool)
     unchanged[1, 1] = False
     np.testing.assert_array_equal(out.data[unchanged], g.data[unchanged])

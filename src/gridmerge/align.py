@@ -2586,8 +2586,8 @@ def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True)
     """The maps as the verified methods judge them: ``(ca, oa, cb, ob)``.
 
     Each map cut to its known cells (plus a margin: real maps are mostly unknown), with
-    the cut's pixel offset, and with isolated hits made unknown when ``despeckled`` (they are
-    not walls). Map transforms between the cuts back with :func:`crop_to_full`.
+    the cut's pixel offset, and with isolated hits made unknown when ``despeckled`` (not
+    walls to judge by). Map transforms between the cuts back with :func:`crop_to_full`.
     """
     ca, oa = _working_map(a, despeckled)
     cb, ob = _working_map(b, despeckled)
