@@ -240,3 +240,25 @@ def test_the_ecc_reference_finds_a_known_pose_from_a_start_off(scale):
     assert ref.shape == (3, 3) and corner_error(ref, t, b.shape) < 1.0
     # A 2 x 3 start is taken as well.
     np.testing.assert_allclose(ecc_reference(a, b, start.params[:2]), ref)
+
+
+def test_time_plot_labels_its_log_axes_in_plain_numbers():
+    """A short log axis (0.15 to 4 million cells) is labelled at 1, 2 and 5 of each
+    decade in plain numbers; matplotlib's default labelled its minor ticks in powers of
+    ten, overlapping one another."""
+    pytest.importorskip("matplotlib")
+    from gridmerge.bench.plots import _plain_log_ticks, _plt
+
+    plt = _plt()
+    fig, ax = plt.subplots()
+    ax.set_xscale("log")
+    ax.set_xlim(0.15, 4.0)
+    _plain_log_ticks(ax.xaxis)
+    fig.canvas.draw()
+    def shown(minor):
+        lo, hi = ax.get_xlim()
+        return [t.get_text() for t in ax.get_xticklabels(minor=minor) if lo <= t.get_position()[0] <= hi and t.get_text()]
+
+    major, minor = shown(False), shown(True)
+    plt.close(fig)
+    assert major == ["0.2", "0.5", "1", "2"] and minor == []

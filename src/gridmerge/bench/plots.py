@@ -38,6 +38,17 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
+def _plain_log_ticks(axis) -> None:
+    """Label a log axis at 1, 2 and 5 of each decade in plain numbers ("0.2", "5"),
+    unlabelled minor ticks: matplotlib's default labels every minor tick of a short
+    axis in powers of ten, and they overlap."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+    axis.set_minor_formatter(NullFormatter())
+
+
 def _binned(plt, records, methods, key, edges, xlabel, title, transform=None, log=False):
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     edges = np.asarray(edges, dtype=float)
@@ -121,6 +132,8 @@ def make_plots(records: Sequence[dict], methods: Sequence[str]) -> dict:
             ax.scatter([r["cells"] / 1e6 for r in sel], [max(r["wall_s"], 1e-4) for r in sel], s=10, alpha=0.6, label=m)
     ax.set_xscale("log")
     ax.set_yscale("log")
+    _plain_log_ticks(ax.xaxis)
+    _plain_log_ticks(ax.yaxis)
     ax.set_xlabel("cells of both maps (millions)")
     ax.set_ylabel("wall time of align (s)")
     ax.set_title("Time vs map size", fontsize=10)
