@@ -255,6 +255,7 @@ def test_time_plot_labels_its_log_axes_in_plain_numbers():
     ax.set_xlim(0.15, 4.0)
     _plain_log_ticks(ax.xaxis)
     fig.canvas.draw()
+
     def shown(minor):
         lo, hi = ax.get_xlim()
         return [t.get_text() for t in ax.get_xticklabels(minor=minor) if lo <= t.get_position()[0] <= hi and t.get_text()]
