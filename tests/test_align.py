@@ -1410,19 +1410,23 @@ def test_a_pose_below_the_one_sided_confidence_is_sought_from_both_sides(monkeyp
     assert calls == [True] and not est.one_sided
 
 
-@pytest.mark.parametrize("a_side", ["no fit", "a rival fit", "unsure"])
+@pytest.mark.parametrize("a_side", ["no fit", "declined on its merits", "a rival fit", "unsure"])
 def test_a_sure_pose_of_the_second_side_is_taken_when_the_first_found_no_fit(monkeypatch, a_side):
-    """A's side declines; b's side finds the Table I pose at 0.9, 300 px from a's best.
-    "no fit": a's best lies where nothing agrees (walls under half of the truth's share):
-    b's side's pose is taken, polished, with a's side's best recorded. "a rival fit": a's
-    best is the truth itself, declined at 0.3 (as ambiguous), and b's side's pose is the
-    chance one: it clearly beats nothing, so a one-sided decline, as before. "unsure": a's
-    side gave 0.6, above ``min_confidence``: two different poses, one-sided."""
+    """A's side declines; b's side finds a pose at 0.9, 300 px from a's best.
+    "no fit": a's best lies where nothing agrees (walls under half of the truth's share),
+    b's side's pose is the Table I one: taken, polished, with a's side's best recorded.
+    "declined on its merits": the same at a confidence of 0.6 for a's best, whose walls
+    fail the wall floor: a's side declines as well, and b's side's pose is taken. "a
+    rival fit": a's best is the truth itself, declined at 0.3 (as ambiguous), and b's
+    side's pose is the chance one: it clearly beats nothing, so a one-sided decline, as
+    before. "unsure": a's side gave the truth 0.6, above ``min_confidence``, a pose it
+    would take: two different poses, one-sided."""
     align_module = importlib.import_module("gridmerge.align")
     a, b, truth = samples.table1_pair(0)
     right = SimilarityTransform(truth)
     far = SimilarityTransform(translation=(300.0, 40.0)) @ right
-    ours, theirs, own = {"no fit": (far, right, 0.0), "a rival fit": (right, far, 0.3), "unsure": (far, right, 0.6)}[a_side]
+    ours, theirs, own = {"no fit": (far, right, 0.0), "declined on its merits": (far, right, 0.6),
+                         "a rival fit": (right, far, 0.3), "unsure": (right, far, 0.6)}[a_side]
 
     def search(judge, fa, fb, second=None):
         judge.prepare()  # as the search does first
@@ -1434,14 +1438,56 @@ def test_a_sure_pose_of_the_second_side_is_taken_when_the_first_found_no_fit(mon
     est = align_module._both_sides(a, b, Features.empty(), Features.empty(), align_module.AlignOptions(), None)
     side = est.details["other_side"]
     assert not side["same_pose"] and side["moved_px"] > 100
-    if a_side == "no fit":
+    if ours is far:
         assert side["taken"] and est.confidence == 0.9 and not est.one_sided
         assert corner_error(est.transform, truth, b.shape) < 1.0
         first = est.details["first_side"]
-        assert first["confidence"] == 0.0 and first["wall_agreement"] <= 0.5 * est.verification.wall_agreement
+        assert first["confidence"] == own and first["wall_agreement"] <= 0.5 * est.verification.wall_agreement
     else:
         assert not side.get("taken") and est.transform is ours and est.confidence == own
         assert est.one_sided.startswith("declined: found from one map's side only (from the other's the search finds a pose")
+
+
+@pytest.mark.parametrize("b_share", [0.10, 0.60])
+def test_a_first_side_pose_one_map_s_walls_deny_is_no_rival(monkeypatch, b_share):
+    """A's side declines with a best pose whose walls agree on 52.5 % as a mean: 95 % of
+    a's walls in the overlap on b's, and ``b_share`` of b's on a's. B's side finds the
+    Table I pose at 0.9 (walls about 95 %), which is not twice 52.5 %. With b's share at
+    10 %, under ``min_wall_share`` (15 %), b's walls mostly cross a's free space at a's
+    best: it is no fit, measured as a rival by that share, and b's side's pose is taken
+    (``first_side["rival_crossed"]``). With 60 % it is a rival fit and the pose stays
+    one-sided."""
+    from gridmerge.verify import Verification
+
+    align_module = importlib.import_module("gridmerge.align")
+    a, b, truth = samples.table1_pair(0)
+    right = SimilarityTransform(truth)
+    far = SimilarityTransform(translation=(300.0, 40.0)) @ right
+    walls_b = 700
+    matched_b = round(b_share * walls_b)
+    matched_a = round((2 * 0.525 - matched_b / walls_b) * 100)
+    crossing = Verification(0.98, 10_000, 200, (matched_a / 100 + matched_b / walls_b) / 2, 10_200, 0.5,
+                            walls_a=100, walls_b=walls_b, matched_a=matched_a, matched_b=matched_b)
+
+    def search(judge, fa, fb, second=None):
+        judge.prepare()
+        if judge.a is a:
+            est = _one_side(far, 0.0)
+            est.verification = crossing
+            return est
+        return _one_side(SimilarityTransform(np.linalg.inv(right.params)), 0.9)
+
+    monkeypatch.setattr(align_module, "_hybrid_search", search)
+    est = align_module._both_sides(a, b, Features.empty(), Features.empty(), align_module.AlignOptions(), None)
+    side = est.details["other_side"]
+    assert crossing.wall_agreement == pytest.approx(0.525, abs=0.01)
+    assert est.verification is crossing or est.verification.wall_agreement > 0.9
+    if b_share < 0.15:
+        assert side["taken"] and not est.one_sided and est.confidence == 0.9
+        assert corner_error(est.transform, truth, b.shape) < 1.0
+        assert est.details["first_side"]["rival_crossed"] and est.details["first_side"]["wall_agreement"] == pytest.approx(0.525, abs=0.01)
+    else:
+        assert not side.get("taken") and est.transform is far and est.one_sided
 
 
 def replace_opts(opts, **kw):
@@ -1519,6 +1565,27 @@ def test_a_pose_found_only_from_the_second_side_is_taken_when_the_first_finds_no
     side, first = r.details["other_side"], r.details["first_side"]
     assert side["taken"] and not side["same_pose"] and first["confidence"] < 0.5
     assert first["wall_agreement"] <= 0.5 * r.verification.wall_agreement
+
+
+@pytest.mark.shared
+def test_a_first_side_pose_its_own_walls_deny_does_not_keep_the_second_side_s_pose_out(shared_data):
+    """Fresh simulated seed 62, pair 20 (two robots in a procedural building, 84 wall
+    cells of the source seen by both, b's cells 1.10 times a's): from the larger map's
+    side the best pose lays b at twice the resolutions' scale (confidence 0.69), where 90 %
+    of a's walls in the overlap lie on b's but 14 % of b's on a's; the search from the
+    other side finds the truth at confidence 1.0, walls agreeing on 99 %. The first side
+    declines its pose on its merits (one map's walls, and its scale), and as a rival that
+    pose counts by the 14 %: b's side's pose is merged (it was declined as one-sided, the
+    first side's 52 % mean being more than half of 99 %)."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=62, data_dir=shared_data)[20]
+    r = align(case.a, case.b, rng=0)
+    assert r.success, r.message
+    assert corner_error(r.transform, case.truth, case.b.shape) < 2.0
+    side, first = r.details["other_side"], r.details["first_side"]
+    assert side["taken"] and not side["same_pose"] and first["rival_crossed"]
+    assert first["confidence"] >= 0.5 and first["wall_agreement"] > 0.5 * r.verification.wall_agreement
 
 
 @pytest.mark.shared

@@ -1436,15 +1436,17 @@ def _estimate_hybrid(a, b, fa, fb, opts: AlignOptions, rng, memory: _PairMemory 
 def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | None = None) -> Estimate:
     """The search from a's side; below ``opts.one_sided_confidence``, judged with the
     search from b's side as well (:attr:`AlignOptions.one_sided_confidence`). A's side
-    declined, b's side's pose is taken when b's side would take it alone, it clearly
-    beats a's side's best and its overlap holds walls enough (``_MIN_WALLS_COMPARED``
-    of the two maps together).
+    declined (:func:`_declines`), b's side's pose is taken when b's side would take it
+    alone, it clearly beats a's side's best (:func:`_as_rival`) and its overlap holds
+    walls enough (``_MIN_WALLS_COMPARED`` of the two maps together).
 
     ``details["other_side"]`` describes the search from b's side: its ``confidence``,
     how far its pose moves the shared part (``moved_px``), its ``source``, whether it is
     the ``same_pose`` and whether it was ``taken``; when it was, the details are its own
     and ``details["first_side"]`` holds a's side's confidence and source (and, for
-    another pose, its best pose's ``wall_agreement``)."""
+    another pose, its best pose's ``wall_agreement``, with ``rival_crossed`` when that
+    pose kept b's side's out by its mean but one map's walls crossing the other's free
+    space there made it a lesser rival)."""
     memory = _PairMemory() if memory is None else memory
     judge = _Judge(a, b, opts, pool=pool, memory=memory.side(False))
     second = _SecondLook(a, b, opts, (fa.blurred, fb.blurred)) if opts.second_look > 0 else None
@@ -1489,15 +1491,17 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
             forward.details["other_side"] = {**note, "same_pose": True, "taken": False}
             return _finished(forward, judge, reverse=False)
         return _other_side_taken(forward, reverse, back, judge, {**note, "same_pose": True})
-    if back is not None and own < opts.min_confidence and other >= tau:
-        # a's side declines and b's finds a pose it would take from its side alone: the
-        # pose a search from b's side first would give (which map is searched from is a
-        # convention: AlignOptions.search_from). Taken when it clearly beats the best
+    if back is not None and other >= tau and _declines(forward, judge, opts):
+        # a's side declines (its confidence is too low, or its pose fails a rule on its
+        # own merits: _declines) and b's finds a pose it would take from its side alone:
+        # the pose a search from b's side first would give (which map is searched from is
+        # a convention: AlignOptions.search_from). Taken when it clearly beats the best
         # pose a's side found, a's side's best measured as its rival (its walls agree on
-        # at most _CLEAR_RATIO of the share of b's pose, both counted in a's frame): a's
-        # side found no fit, rather than fits as good as b's pose. A small map fits a
-        # large building by chance in many places, and from the small map's side such a
-        # fit can look sure: the apartment HIH_01 laid into the office E5_01 at 0.99
+        # at most _CLEAR_RATIO of the share of b's pose, both counted in a's frame; where
+        # one map's walls mostly cross the other's free space, by that map's share:
+        # _as_rival): a's side found no fit, rather than fits as good as b's pose. A
+        # small map fits a large building by chance in many places, and from the small
+        # map's side such a fit can look sure: the apartment HIH_01 laid into the office E5_01 at 0.99
         # (walls 70 %), E5_01's best pose agreeing on 44 %; E5_09's on 52 % against 61 %.
         # The simulated positives so taken agreed on 80-97 %, a's side's best on 9-18 %
         # (docs/benchmarks.md, thirty-third session). Every decline rule still applies.
@@ -1508,12 +1512,15 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         # merged 24.6 px off at 1.0 on 22 + 11 wall cells; seed 5's pair 51 is merged
         # rightly (2.6 px) by the coarser look on 31 + 99 (thirty-ninth session; 40 of
         # *each* map lost it).
-        first = forward.verification or judge._verify(forward.transform)
+        first = _verified(forward, judge)
         theirs = judge._verify(back)
         enough = theirs.walls_a + theirs.walls_b >= _MIN_WALLS_COMPARED
-        if enough and _full_wall(first) <= _CLEAR_RATIO * _full_wall(theirs):
+        rival = _as_rival(first, opts)
+        if enough and rival <= _CLEAR_RATIO * _full_wall(theirs):
+            # Recorded where the crossing decided: measured by its mean, a's best would have kept it out.
+            crossed = {"rival_crossed": True} if _full_wall(first) > _CLEAR_RATIO * _full_wall(theirs) else {}
             return _other_side_taken(forward, reverse, back, judge, {**note, "same_pose": False},
-                                     wall_agreement=round(_full_wall(first), 4))
+                                     wall_agreement=round(_full_wall(first), 4), **crossed)
     forward.details["other_side"] = {**note, "same_pose": False}
     where = "no pose" if back is None else f"a pose {moved:.0f} px away" if math.isfinite(moved) else "a pose that shares nothing with it"
     forward.one_sided = (f"declined: found from one map's side only (from the other's the search finds {where}); "
@@ -1532,6 +1539,38 @@ def _other_side_taken(forward: Estimate, reverse: Estimate, back, judge: _Judge,
     taken = Estimate(back, reverse.inliers, reverse.dst, reverse.src, details=details, verification=judge._verify(back),
                      confidence=reverse.confidence or 0.0, matched=reverse.matched)
     return _finished(taken, judge, reverse=True)
+
+
+def _verified(est: Estimate, judge: _Judge) -> Verification:
+    """``est``'s verification, or its pose verified by ``judge``."""
+    return est.verification or judge._verify(est.transform)
+
+
+def _declines(est: Estimate, judge: _Judge, opts: AlignOptions) -> bool:
+    """Whether the search whose best pose is ``est`` declines it: a confidence below
+    :attr:`AlignOptions.min_confidence`, or a pose :func:`_decline_reason` declines on its
+    own merits (its walls, its scale ...) whatever its confidence. Fresh simulated seed
+    62's pair 20: a's side's best, at twice the resolutions' scale, had 0.69, and only one
+    map's walls agreed there."""
+    own = est.confidence or 0.0
+    if own < opts.min_confidence:
+        return True
+    return not _taken_by(est, opts, _scale_disagreement(est.transform, judge.a, judge.b))(_verified(est, judge))
+
+
+def _as_rival(v: Verification, opts: AlignOptions) -> float:
+    """A's side's best pose measured as the rival of the pose b's side found
+    (:func:`_both_sides`): its walls' agreement, or, where one map's walls mostly cross
+    the other's free space there (fewer than :attr:`AlignOptions.min_wall_share` of them
+    on the other's walls, a pose :func:`_merit_reason` declines on its own), that map's
+    share: walls one map denies are no fit as good as another pose's. Fresh simulated
+    seed 62's pair 20 was declined so: a's side's best, at twice the resolutions' scale,
+    agreed on 52 % as the mean of 90 % and 14 %, and b's side's pose (0.1 px from the
+    truth, walls 99 %) did not beat it twice over."""
+    shares = _wall_shares(v)
+    if shares is not None and min(shares) < opts.min_wall_share:
+        return min(shares)
+    return _full_wall(v)
 
 
 def _has_keypoint_support(est: Estimate) -> bool:
