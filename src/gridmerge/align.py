@@ -1501,8 +1501,9 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         # one map's walls mostly cross the other's free space, by that map's share:
         # _as_rival): a's side found no fit, rather than fits as good as b's pose. A
         # small map fits a large building by chance in many places, and from the small
-        # map's side such a fit can look sure: the apartment HIH_01 laid into the office E5_01 at 0.99
-        # (walls 70 %), E5_01's best pose agreeing on 44 %; E5_09's on 52 % against 61 %.
+        # map's side such a fit can look sure: the apartment HIH_01 laid into the office
+        # E5_01 at 0.99 (walls 70 %), E5_01's best pose agreeing on 44 %; E5_09's on 52 %
+        # against 61 %.
         # The simulated positives so taken agreed on 80-97 %, a's side's best on 9-18 %
         # (docs/benchmarks.md, thirty-third session). Every decline rule still applies.
         # The pose overrules a's side's search, so it must rest on walls enough for the
@@ -1515,10 +1516,10 @@ def _both_sides(a, b, fa, fb, opts: AlignOptions, pool, memory: _PairMemory | No
         first = _verified(forward, judge)
         theirs = judge._verify(back)
         enough = theirs.walls_a + theirs.walls_b >= _MIN_WALLS_COMPARED
-        rival = _as_rival(first, opts)
-        if enough and rival <= _CLEAR_RATIO * _full_wall(theirs):
+        bar = _CLEAR_RATIO * _full_wall(theirs)
+        if enough and _as_rival(first, opts) <= bar:
             # Recorded where the crossing decided: measured by its mean, a's best would have kept it out.
-            crossed = {"rival_crossed": True} if _full_wall(first) > _CLEAR_RATIO * _full_wall(theirs) else {}
+            crossed = {"rival_crossed": True} if _full_wall(first) > bar else {}
             return _other_side_taken(forward, reverse, back, judge, {**note, "same_pose": False},
                                      wall_agreement=round(_full_wall(first), 4), **crossed)
     forward.details["other_side"] = {**note, "same_pose": False}
