@@ -1568,10 +1568,8 @@ def _as_rival(v: Verification, opts: AlignOptions) -> float:
     seed 62's pair 20 was declined so: a's side's best, at twice the resolutions' scale,
     agreed on 52 % as the mean of 90 % and 14 %, and b's side's pose (0.1 px from the
     truth, walls 99 %) did not beat it twice over."""
-    shares = _wall_shares(v)
-    if shares is not None and min(shares) < opts.min_wall_share:
-        return min(shares)
-    return _full_wall(v)
+    denied = _denied_share(v, opts)
+    return _full_wall(v) if denied is None else denied
 
 
 def _has_keypoint_support(est: Estimate) -> bool:
@@ -2740,6 +2738,16 @@ def _wall_shares(v: Verification) -> tuple[float, float] | None:
     return v.matched_a / v.walls_a, v.matched_b / v.walls_b
 
 
+def _denied_share(v: Verification, opts: AlignOptions) -> float | None:
+    """The lesser of the two maps' wall shares (:func:`_wall_shares`) when it is under
+    :attr:`AlignOptions.min_wall_share` (one map's walls mostly cross the other's free
+    space there), ``None`` otherwise."""
+    shares = _wall_shares(v)
+    if shares is not None and min(shares) < opts.min_wall_share:
+        return min(shares)
+    return None
+
+
 def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions, need_inliers: bool,
                   matched: bool, runner_up_ratio: float | None = None) -> str:
     """:func:`_decline_reason` of a pose, its scale aside."""
@@ -2755,9 +2763,9 @@ def _merit_reason(inliers: int, v: Verification, conf: float, opts: AlignOptions
     floor = opts.min_wall_agreement_matched if matched else opts.min_wall_agreement
     if not math.isfinite(v.wall_agreement) or v.wall_agreement < floor:
         return f"declined: walls agree on {v.wall_agreement:.0%} of the overlap (need {floor:.0%})"
-    shares = _wall_shares(v)
-    if shares is not None and min(shares) < opts.min_wall_share:
-        return (f"declined: only {min(shares):.0%} of one map's walls in the overlap lie on the other's walls "
+    denied = _denied_share(v, opts)
+    if denied is not None:
+        return (f"declined: only {denied:.0%} of one map's walls in the overlap lie on the other's walls "
                 f"(need {opts.min_wall_share:.0%} of each; the rest cross the other's free space)")
     if conf < opts.min_confidence:
         return f"declined: confidence {conf:.2f} below {opts.min_confidence}" + _ambiguity_note(runner_up_ratio)
