@@ -420,8 +420,12 @@ def test_wall_led_search_aligns_what_the_overlap_seeking_one_cannot(shared_data)
     assert r.details["overlap_seeking"]["confidence"] < 0.5
     assert r.success and r.details["source"] == "walls (wall-led)"
     assert corner_error(r.transform, case.truth, case.b.shape) < 2.0
-    # Without the second search the pair is declined.
-    assert not align(case.a, case.b, rng=0, wall_led=False, second_look=0).success
+    # Without the second search the first look declines it from both sides (the coarser
+    # look finds it from b's side since a pose is polished again where a polish stopped:
+    # the fifty-seventh session), and nothing merges it wrongly.
+    alone = align(case.a, case.b, rng=0, wall_led=False, second_look=0)
+    assert alone.details["coarse_look"]["first_confidence"] < 0.5
+    assert not alone.success or corner_error(alone.transform, case.truth, case.b.shape) < 2.0
     r = align(case.a, case.b, rng=0)
     assert r.success and corner_error(r.transform, case.truth, case.b.shape) < 2.0
 
@@ -1786,16 +1790,21 @@ def _plain_features(a, b):
 
 
 @pytest.mark.shared
-@pytest.mark.parametrize("a_name, b_name", [("E5_03", "E5_11"), ("E5_10", "E5_13")])
-def test_real_maps_merged_by_the_search_with_coarser_keypoints(shared_data, a_name, b_name):
+@pytest.mark.parametrize("a_name, b_name, coarse", [("E5_03", "E5_11", True), ("E5_10", "E5_13", False)])
+def test_real_maps_merged_by_the_search_with_coarser_keypoints(shared_data, a_name, b_name, coarse):
     """Two E5 pairs declined by the search with keypoints on 400k pixels (confidence 0.38)
     and merged within the protocol by the second one, on 200k, in either order. (The
     second search runs only when the first declined: the message and
-    ``first_confidence`` say so, with no need to search again with ``coarse_look=0``.)"""
+    ``first_confidence`` say so, with no need to search again with ``coarse_look=0``.)
+    Since a pose is polished again where a polish stopped (fifty-seventh session), the
+    first search merges E5_10-E5_13 itself (confidence 0.62), within the protocol too."""
     pair, a, b = _e5_pair(shared_data, a_name, b_name)
     r = align(a, b, rng=0)
     assert r.success, r.message
-    assert r.details["coarse_look"]["first_confidence"] < 0.5 and "fewer pixels" in r.message
+    if coarse:
+        assert r.details["coarse_look"]["first_confidence"] < 0.5 and "fewer pixels" in r.message
+    else:
+        assert "coarse_look" not in r.details
     assert _within_protocol(r.transform, pair)
     swapped = align(b, a, rng=0)
     assert swapped.success and np.allclose(swapped.transform.params, r.transform.inverse.params)
@@ -1955,3 +1964,52 @@ def test_a_confidence_lowered_by_a_rival_pose_says_so():
     assert _merit_reason(0, v, 0.3, AlignOptions(), False, False, None) == "declined: confidence 0.30 below 0.5"
     assert "fits 90% as well" in _merit_reason(0, v, 0.3, AlignOptions(), False, False, 0.9)
     assert "fits as well or better" in _merit_reason(0, v, 0.0, AlignOptions(), False, False, 1.17)
+
+
+def test_a_pose_is_polished_again_where_the_last_polish_stopped():
+    """ICP on thin, noisy walls can stop in a fit of one part on its way: a polished pose
+    that a further polish raises by a tenth is polished again (at most ``_POLISH_ROUNDS``
+    times, each step within ``_POLISH_REACH`` and all within ``_POLISHES_REACH`` of the
+    start); a polish that gains less, or would carry the pose beyond that, is not kept."""
+    module = importlib.import_module("gridmerge.align")
+
+    a, b, truth = samples.robot_pair(0)
+    judge = module._Judge(a, b, module.AlignOptions())
+    start = SimilarityTransform(truth)
+
+    def shifted(px):
+        return SimilarityTransform(SimilarityTransform(translation=(px, 0.0)).params @ truth)
+
+    step = 7.0
+    scores = {0.0: 0.5, 7.0: 0.6, 14.0: 0.7, 21.0: 0.9}
+
+    def score(t):
+        return scores[round(float(t.params[0, 2] - truth[0, 2]))]
+
+    def polish(t):  # each polish moves the pose 7 px along x
+        return shifted(float(t.params[0, 2] - truth[0, 2]) + step)
+
+    judge._polish = polish
+    assert step <= module._POLISH_REACH and 2 * step <= module._POLISHES_REACH < 3 * step <= module._POLISH_ROUNDS * step
+    value, pose = judge.polished(start, score)
+    assert value == 0.7 and pose.params[0, 2] == pytest.approx(truth[0, 2] + 14.0)  # 21 px is beyond reach
+    scores[14.0] = 0.65  # under a tenth more than 0.6: the second polish is not kept
+    value, pose = judge.polished(start, score)
+    assert value == 0.6 and pose.params[0, 2] == pytest.approx(truth[0, 2] + 7.0)
+    judge._polish = lambda t: None  # a pose that may not be polished stays
+    assert judge.polished(start, score) == (0.5, start)
+
+
+@pytest.mark.shared
+def test_a_pose_the_polish_left_halfway_is_polished_again(shared_data):
+    """Fresh simulated seed 78, pair 32 (Halmstad, noisy, b's cells 0.63 of a's, 540 wall
+    cells of each map in the overlap): the best candidate is refined to 12.3 px from the
+    truth and polished to 5.4 px, where its walls agree on 51 %; polished again from there
+    it is 0.2 px from the truth, walls agreeing on 99.6 %. Merged 5.4 px off before."""
+    from gridmerge.bench import datasets
+
+    case = datasets.simulated(n=60, seed=78, data_dir=shared_data)[32]
+    r = align(case.a, case.b, rng=0)
+    assert r.success, r.message
+    assert corner_error(r.transform, case.truth, case.b.shape) < 1.0
+    assert r.verification.wall_agreement > 0.9
