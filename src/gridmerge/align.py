@@ -13,7 +13,8 @@ Methods
     maps' walls (wall-direction histograms for the rotation, FFT correlation of wall images
     for the translation, :mod:`gridmerge.correlate`). All are scored by wall agreement, the
     best distinct ones refined to sub-pixel precision against the cells of both maps (then
-    polished by ICP on the walls where that makes them agree clearly better), and
+    polished by ICP on the walls where that makes them agree clearly better, and again
+    from there while it does), and
     the winner's confidence combines its wall agreement with how clearly it beats every
     clearly different pose (repeated structure makes them close): the other candidates
     that move the shared part of b by 25 px or more, and the winner itself shifted by
@@ -1064,8 +1065,9 @@ class _Judge:
     def polished(self, t: AffineTransform, score) -> tuple[float, AffineTransform]:
         """``(score, pose)``: refined pose ``t`` polished by ICP on the walls
         (:class:`gridmerge.refine.WallICP`) when that raises ``score`` by
-        :data:`_POLISH_GAIN` and moves b's corners no farther than :data:`_POLISH_REACH`;
-        ``t`` and its score otherwise. With the maps' resolutions trusted, only poses
+        :data:`_POLISH_GAIN` and moves b's corners no farther than :data:`_POLISH_REACH`,
+        and polished again from there on the same terms (:data:`_POLISH_ROUNDS`,
+        :data:`_POLISHES_REACH`); ``t`` and its score otherwise. With the maps' resolutions trusted, only poses
         within the refinement's scale prior range of their ratio are polished.
 
         The refinement matches smoothed occupancy. Where walls are thin and noisy (a
