@@ -1067,8 +1067,9 @@ class _Judge:
         (:class:`gridmerge.refine.WallICP`) when that raises ``score`` by
         :data:`_POLISH_GAIN` and moves b's corners no farther than :data:`_POLISH_REACH`,
         and polished again from there on the same terms (:data:`_POLISH_ROUNDS`,
-        :data:`_POLISHES_REACH`); ``t`` and its score otherwise. With the maps' resolutions trusted, only poses
-        within the refinement's scale prior range of their ratio are polished.
+        :data:`_POLISHES_REACH`); ``t`` and its score otherwise. With the maps'
+        resolutions trusted, only poses within the refinement's scale prior range of their
+        ratio are polished.
 
         The refinement matches smoothed occupancy. Where walls are thin and noisy (a
         resolution change, spurious and missed hits) or the maps bend (Tango maps), its
@@ -1806,8 +1807,8 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         # finds walls agreeing on the settled bar and far better, judge again with that pose.
         if confidence >= opts.min_confidence and _full_wall(v) < _SETTLED_WALL:
             beyond = judge.beyond_reach(best)
-            beyond_wall = 0.0 if beyond is None else _full_wall(judge._verify(beyond))
-            if beyond is not None and beyond_wall >= max(_SETTLED_WALL, _full_wall(v) + _UNSETTLED_GAIN):
+            beyond_wall = _full_wall(judge._verify(beyond)) if beyond is not None else 0.0
+            if beyond_wall >= max(_SETTLED_WALL, _full_wall(v) + _UNSETTLED_GAIN):
                 beyond_kind = f"{kind} (polished beyond reach)"
                 candidates = candidates + [(beyond, beyond_kind)]
                 wall, best, kind, runner_up, v = judge.decide(candidates)
