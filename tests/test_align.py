@@ -2016,6 +2016,19 @@ def test_a_pose_the_polish_left_halfway_is_polished_again(shared_data):
     assert r.verification.wall_agreement > 0.9
 
 
+def _judged_at_the_truth():
+    """The first sample pair judged as the search judges it: ``(module, a, b, truth, judge,
+    right, centre)``, with ``right`` the truth between the working maps' cuts and
+    ``centre`` (x, y) the median of the part of b it lays on a's known cells."""
+    module = importlib.import_module("gridmerge.align")
+    a, b, truth = samples.robot_pair(0)
+    ca, oa, cb, ob = module.working_maps(a, b)
+    right = module.full_to_crop(SimilarityTransform(truth), oa, ob)
+    judge = module._Judge(ca, cb, module.AlignOptions())
+    p, on = judge._shared_part(right)
+    return module, a, b, truth, judge, right, np.median(p[on], axis=0)
+
+
 def test_a_pose_polished_beyond_reach_is_taken_when_the_sample_prefers_a_worse_one(monkeypatch):
     """The rule for a pose polished beyond reach measures walls in full; the judging
     ranks by the scorer's sample, which on a coarse b can score a pose 2 degrees off
@@ -2024,14 +2037,8 @@ def test_a_pose_polished_beyond_reach_is_taken_when_the_sample_prefers_a_worse_o
     polished beyond reach, the latter is taken. Here the judging is made to prefer a
     pose turned 2 degrees about the shared part (walls agreeing on 50 % in full, the
     truth on 99 %), whatever it is offered."""
-    module = importlib.import_module("gridmerge.align")
-
-    a, b, truth = samples.robot_pair(0)
-    ca, oa, cb, ob = module.working_maps(a, b)
-    right = module.full_to_crop(SimilarityTransform(truth), oa, ob)
-    judge = module._Judge(ca, cb, module.AlignOptions())
-    p, on = judge._shared_part(right)
-    turned = SimilarityTransform(_turn_about(tuple(np.median(p[on], axis=0)), 2.0).params @ right.params)
+    module, a, b, truth, judge, right, centre = _judged_at_the_truth()
+    turned = SimilarityTransform(_turn_about(tuple(centre), 2.0).params @ right.params)
     v_turned, v_right = judge._verify(turned), judge._verify(right)
     assert module._full_wall(v_turned) + module._UNSETTLED_GAIN <= module._full_wall(v_right)
     assert judge.far_apart(turned, right, module._POLISH_REACH) and not judge.rival(turned, right)
@@ -2049,4 +2056,38 @@ def test_a_pose_polished_beyond_reach_is_taken_when_the_sample_prefers_a_worse_o
     assert len(decided) >= 2  # judged again with the pose polished beyond reach
     assert r.success, r.message
     assert r.details["source"].endswith("(polished beyond reach)")
+    assert corner_error(r.transform, truth, b.shape) < 1.0
+
+
+def test_a_pose_brought_to_the_ratio_is_taken_when_the_sample_prefers_a_worse_one(monkeypatch):
+    """A pose off the maps' resolution ratio is judged again brought to the ratio when
+    that removes a third of the walls' disagreement, on the scorer's sample or in full;
+    the judging ranks by the sample, which on a coarse b can score a pose off in scale
+    above the truth (fresh HM3D seed 53's pair 10: 94 % on the sample, 76 % in full, the
+    pose at the ratio 93.6 % and 91.5 %). When the judging keeps the pose off the ratio,
+    the one at the ratio, measured in full the better fit of the same merge, is taken.
+    Here the judging is made to prefer b scaled 2 % about the shared part (walls agreeing
+    on 71 % in full, the truth on 99 %) at a saturated sample score (no pose can beat it
+    there), whatever it is offered."""
+    module, a, b, truth, judge, right, centre = _judged_at_the_truth()
+    about = SimilarityTransform(translation=centre) @ SimilarityTransform(scale=1.02) @ SimilarityTransform(translation=-centre)
+    off = SimilarityTransform(about.params @ right.params)
+    v_off, v_right = judge._verify(off), judge._verify(right)
+    assert module._removes_disagreement(module._full_wall(v_right), module._full_wall(v_off), module._RESCALE_GAIN)
+    assert not judge.rival(off, right)
+
+    decided = []
+
+    def decide(self, candidates, **kwargs):  # the sample's verdict: the pose off the ratio
+        decided.append(len(candidates))
+        return 0.9999, off, "walls", 0.2, self._verify(off)
+
+    monkeypatch.setattr(module._Judge, "decide", decide)
+    monkeypatch.setattr(module._Judge, "climbed", lambda self, t: [t])  # no better pose nearby
+    monkeypatch.setattr(module._Judge, "rescaled", lambda self, t: [right] if t is off else [])
+    monkeypatch.setattr(module._Judge, "beyond_reach", lambda self, t: None)
+    r = align(a, b, rng=0, keypoints_first=0, wall_led=False, search_from="a", coarse_look=0)
+    assert len(decided) >= 2  # judged again with the pose at the ratio
+    assert r.success, r.message
+    assert r.details["source"].endswith("(at the resolutions' scale)")
     assert corner_error(r.transform, truth, b.shape) < 1.0
