@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import zipfile
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -12,15 +10,10 @@ import pytest
 
 from gridmerge import load_map
 
-SCRIPT = Path(__file__).resolve().parents[2] / "benchmarks" / "hm3d_maps.py"
-
 
 @pytest.fixture(scope="module")
-def hm3d():
-    spec = importlib.util.spec_from_file_location("hm3d_maps", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def hm3d(benchmark_script):
+    return benchmark_script("hm3d_maps")
 
 
 def _plot() -> np.ndarray:
