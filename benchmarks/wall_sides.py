@@ -97,7 +97,7 @@ def contacts(a, b, pose: np.ndarray, *, tolerance: int = 2, thin: int = 4):
 def measure(record: dict, case, *, tolerance: int, thin: int) -> dict:
     """One case's line: contact share, normals' coherence, the truth's shift at the contacts."""
     a, b = despeckle(case.a), despeckle(case.b)
-    pose = np.vstack([np.asarray(record["estimate"]["matrix"], float), [0.0, 0.0, 1.0]])
+    pose = _pose(record)
     matched, contact, normals = contacts(a, b, pose, tolerance=tolerance, thin=thin)
     n_matched, n_contact = int(matched.sum()), int(contact.sum())
     line = {"matched": n_matched, "contacts": n_contact, "share": n_contact / n_matched if n_matched else None,
@@ -112,6 +112,11 @@ def measure(record: dict, case, *, tolerance: int, thin: int) -> dict:
             moved = np.asarray(truth, float) @ np.linalg.solve(pose, centre) - centre
             line["shift_px"] = float(-moved[:2] @ mean / line["coherence"])
     return line
+
+
+def _pose(record: dict) -> np.ndarray:
+    """The record's estimate, b pixels -> a pixels: a (3, 3) float array."""
+    return np.vstack([np.asarray(record["estimate"]["matrix"], float), [0.0, 0.0, 1.0]])
 
 
 def _outcome(rec: dict) -> str:
@@ -151,8 +156,7 @@ def main(argv=None) -> int:
                             wall_agreement=v.get("wall_agreement"), walls=[v.get("walls_a"), v.get("walls_b")],
                             **measure(rec, case, tolerance=args.tolerance, thin=args.thin))
                 if line["error_px"] is None and getattr(case, "truth", None) is not None:
-                    pose = np.vstack([rec["estimate"]["matrix"], [0, 0, 1]])
-                    line["error_px"] = float(corner_error(pose, case.truth, case.b.shape))
+                    line["error_px"] = float(corner_error(_pose(rec), case.truth, case.b.shape))
                 lines.append(line)
                 if out:
                     out.write(json.dumps(line) + "\n")

@@ -1798,13 +1798,9 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         rescaled = _at_the_ratio(judge, best, wall, kind, v)
         if rescaled:
             candidates = candidates + rescaled
-            wall, best, kind, runner_up, v = judge.decide(candidates)
             (there, there_kind), = rescaled
-            if not judge.rival(best, there) and _rescaled_wins(judge, there, v):
-                # The judging ranks by the scorer's sample; measured in full, the pose at
-                # the ratio is the better fit of the same merge (_rescaled_wins).
-                best, kind, v = there, there_kind, judge._verify(there)
-                wall = judge.quick(there)
+            wall, best, kind, runner_up, v = _decided_in_full(
+                judge, candidates, there, there_kind, lambda kept: _rescaled_wins(judge, there, kept))
             ratio, confidence = _judged(wall, runner_up, v)
         # And a pose taken on walls agreeing below the settled bar may lie turned about the
         # shared part from where they coincide, farther at b's corners than a polish may
@@ -1817,15 +1813,8 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
             if beyond_wall >= max(_SETTLED_WALL, _full_wall(v) + _UNSETTLED_GAIN):
                 beyond_kind = f"{kind} (polished beyond reach)"
                 candidates = candidates + [(beyond, beyond_kind)]
-                wall, best, kind, runner_up, v = judge.decide(candidates)
-                if beyond_wall >= _full_wall(v) + _UNSETTLED_GAIN and not judge.rival(best, beyond):
-                    # The judging ranks by the scorer's sample of wall cells, which can
-                    # prefer the pose the rule measured in full as far worse: on a coarse
-                    # b (HM3D seed 39's pair 51, b's cells 1.92 times a's) a pose 2 degrees
-                    # off scored 97.6 % on the sample and 67.5 % in full, the same merge
-                    # polished beyond reach 89.7 % and 90.9 %. The full measure decides.
-                    best, kind, v = beyond, beyond_kind, judge._verify(beyond)
-                    wall = judge.quick(beyond)
+                wall, best, kind, runner_up, v = _decided_in_full(
+                    judge, candidates, beyond, beyond_kind, lambda kept: beyond_wall >= _full_wall(kept) + _UNSETTLED_GAIN)
                 ratio, confidence = _judged(wall, runner_up, v)
     if confidence < opts.min_confidence and opts.wall_led:
         # Then the wall-led correlation, which finds the right pose far more often when
@@ -1968,6 +1957,25 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         details["confirmed_by"] = _confirmed_by(matched[0])
         return Estimate(best, inl, src, dst, details=details, verification=v, confidence=matched[2], matched=True)
     return Estimate(best, inl, src, dst, details=details, verification=v, confidence=confidence)
+
+
+def _decided_in_full(judge: _Judge, candidates: list, pose: AffineTransform, pose_kind: str,
+                     better: Callable[[Verification], bool]):
+    """:meth:`_Judge.decide` on ``candidates``, among them ``pose`` (found as
+    ``pose_kind``), which a rule measured in full and judges again: when the judging keeps
+    another pose of the same merge (no rival of ``pose``) and ``better(v)`` says, from
+    the kept pose's verification ``v``, that ``pose`` fits clearly better in full,
+    ``pose`` is taken. The judging ranks by the scorer's sample of wall cells, which on
+    a coarse b can prefer the pose the full measure finds far worse: HM3D seed 39's pair
+    51 (b's cells 1.92 times a's), a pose 2 degrees off scored 97.6 % on the sample and
+    67.5 % in full, the same merge polished beyond reach 89.7 % and 90.9 %; fresh HM3D
+    seed 53's pair 10 (:func:`_rescaled_wins`). Returns ``decide``'s
+    ``(wall, best, kind, runner_up, v)``, with ``pose`` in it when taken."""
+    wall, best, kind, runner_up, v = judge.decide(candidates)
+    if better(v) and not judge.rival(best, pose):
+        best, kind, v = pose, pose_kind, judge._verify(pose)
+        wall = judge.quick(pose)
+    return wall, best, kind, runner_up, v
 
 
 def _at_the_ratio(judge: _Judge, best: AffineTransform, wall: float, kind: str,
