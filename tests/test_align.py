@@ -12,6 +12,11 @@ from gridmerge import AlignResult, OccupancyGrid, align, samples
 from gridmerge.bench.metrics import ecc_reference
 from gridmerge.transforms import ScaledRotationTransform, SimilarityTransform, corner_error
 from gridmerge.features import Features
+from gridmerge.align import AlignOptions
+from gridmerge.verify import Verification
+
+#: The module (the package's ``align`` name is the function).
+align_module = importlib.import_module("gridmerge.align")
 
 # Simulated benchmark pairs named by number below are those of the set as built until
 # 2026-11-30 (``see_through=0``: scanner rays stopped at a source's unknown cells), the
@@ -2091,3 +2096,41 @@ def test_a_pose_brought_to_the_ratio_is_taken_when_the_sample_prefers_a_worse_on
     assert r.success, r.message
     assert r.details["source"].endswith("(at the resolutions' scale)")
     assert corner_error(r.transform, truth, b.shape) < 1.0
+
+
+# ------------------------------------------------------------ poses on few walls
+def test_a_pose_on_few_walls_is_taken_with_a_warning_that_counts_them(table1, table1_result):
+    # The Table I pair's pose rests on thousands of wall cells: no warning by default.
+    # Asked to warn below more walls than its overlap holds, the same decision carries a
+    # warning that gives the two maps' counts and the threshold; 0 turns it off.
+    a, b, _ = table1
+    v = table1_result.verification
+    assert table1_result.success and table1_result.warnings == []
+    total = v.walls_a + v.walls_b
+    assert total >= AlignOptions().few_walls
+    flagged = align(a, b, few_walls=total + 1)
+    assert flagged.success and flagged.confidence == table1_result.confidence
+    np.testing.assert_allclose(flagged.matrix, table1_result.matrix)
+    (note,) = flagged.warnings
+    assert f"{v.walls_a} + {v.walls_b} wall cells" in note and f"under {total + 1}" in note
+    assert align(a, b, few_walls=total).warnings == []
+    assert align(a, b, few_walls=0).warnings == []
+
+
+def test_few_walls_warning_needs_a_taken_pose_and_its_counts(table1_result):
+    opts = AlignOptions(few_walls=50)
+    few = Verification(0.99, 100, 1, 0.95, 5000, 0.3, walls_a=20, walls_b=29, matched_a=19, matched_b=28)
+    enough = replace(few, walls_b=30)
+    unknown = replace(few, walls_a=None, walls_b=None)
+    assert "20 + 29 wall cells" in align_module.few_walls_warning(few, opts)
+    assert align_module.few_walls_warning(enough, opts) is None
+    assert align_module.few_walls_warning(unknown, opts) is None  # a result saved before the counts were
+    assert align_module.few_walls_warning(few, AlignOptions(few_walls=None)) is None
+    taken = replace(table1_result, verification=few)
+    once = align_module.with_warnings(taken, opts)
+    assert len(once.warnings) == 1 and align_module.with_warnings(once, opts).warnings == once.warnings
+    declined = replace(taken, success=False, transform=None)
+    assert align_module.with_warnings(declined, opts).warnings == []
+    # The warnings travel with the result.
+    back = AlignResult.from_dict(json.loads(once.to_json()))
+    assert back.warnings == once.warnings

@@ -96,6 +96,18 @@ def test_a_map_of_walls_everywhere_is_named_and_the_rest_merged(pair):
     assert "no two maps" not in m.message
 
 
+def test_a_merge_resting_on_few_walls_warns_and_names_the_maps(pair, merged):
+    # The pair's one alignment rests on many walls: no warning. Asked to warn below more
+    # walls than its overlap holds, the same merge names the two maps in a warning.
+    a, b, _ = pair
+    assert merged.success and not [w for w in merged.warnings if "few walls" in w]
+    m = merge([a, b], options=gridmerge.AlignOptions(few_walls=10**9))
+    assert m.success and m.transforms[1] is not None
+    np.testing.assert_allclose(m.transforms[1].params, merged.transforms[1].params)
+    (note,) = [w for w in m.warnings if "few walls" in w]
+    assert note.startswith(f"{a.name} - {b.name}: the pose rests on few walls")
+
+
 def test_no_merge_when_nothing_aligns():
     a, b = samples.negative_pair(1)
     m = merge([a, b])

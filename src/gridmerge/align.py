@@ -163,6 +163,15 @@ class AlignOptions:
         (at 20 it was declined). docs/benchmarks.md, eighteenth session; "The decline
         threshold" counts what higher values decline (``--min-overlap-walls`` on the
         command line).
+    few_walls : int or None
+        A pose taken on fewer wall cells than this in the overlap, the two maps'
+        together (``walls_a + walls_b``, counted as for ``min_overlap_walls``), carries
+        a warning (:attr:`AlignResult.warnings`): its confidence does not count how much
+        wall it rests on, and in the benchmark's runs of simulated and HM3D maps one such
+        merge in seven was wrong or joined two different places, against one in three
+        hundred of those on more; on real maps of a few rooms (``halmstad-partial``) all
+        five were (docs/benchmarks.md, "Poses on few walls"). The decision does not
+        change; ``None`` or 0: no warning.
     min_wall_share : float
         Decline when, of either map's occupied cells in the overlap, fewer than this share
         lie within the tolerance of the other map's walls
@@ -355,6 +364,7 @@ class AlignOptions:
     min_wall_agreement_matched: float = 0.3
     min_overlap_cells: int = 100
     min_overlap_walls: int = 10
+    few_walls: int | None = 50
     min_wall_share: float = 0.15
     min_confidence: float = 0.5
     max_slide: float | None = 0.75
@@ -414,6 +424,9 @@ class AlignResult:
         Inlier correspondences ``[[xb, yb], [xa, ya]]`` (for plots).
     details : dict
         Method-specific diagnostics (JSON-ready).
+    warnings : list of str
+        What a user should know about a taken pose that passed every decline rule: that
+        it rests on few walls (:attr:`AlignOptions.few_walls`). Empty when declined.
     """
 
     success: bool
@@ -431,6 +444,7 @@ class AlignResult:
     verification: Verification | None = None
     inlier_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 2)), repr=False)
     details: dict = field(default_factory=dict, repr=False)
+    warnings: list[str] = field(default_factory=list)
 
     def __bool__(self) -> bool:
         return self.success
@@ -488,6 +502,7 @@ class AlignResult:
         d["candidate"] = None if self.candidate is None else self.candidate.to_dict()
         d["metric_transform"] = None if self.metric_transform is None else self.metric_transform.to_dict()
         d["details"] = finite(self.details)  # a copy, NaN (a method's undefined index) as None
+        d["warnings"] = list(self.warnings)
         return d
 
     def to_json(self, **kwargs) -> str:
@@ -516,6 +531,7 @@ class AlignResult:
             elapsed_s=float(d.get("elapsed_s", 0.0)),
             verification=None if v is None else Verification(**{k: _none_to_nan(x) if k in ("acceptance_index", "wall_agreement") else x for k, x in v.items()}),
             details=d.get("details", {}),
+            warnings=list(d.get("warnings", [])),
         )
 
     def save(self, path) -> None:
@@ -2276,7 +2292,30 @@ def align(
                 return _walls_everywhere(name, share, method, opts, time.perf_counter() - t0)
     # Two threads of its own, each calling OpenCV: OpenCV's threads get half the cores.
     with opencv_threads_split(2):
-        return _align(a, b, method, opts, rng, features, extractor)
+        result = _align(a, b, method, opts, rng, features, extractor)
+    return with_warnings(result, opts) if METHODS[method].verified else result
+
+
+def few_walls_warning(v: Verification | None, opts: AlignOptions) -> str | None:
+    """The warning that a pose verified as ``v`` rests on fewer wall cells of the
+    overlap than :attr:`AlignOptions.few_walls` (the two maps' together), or ``None``."""
+    if not opts.few_walls or v is None or v.walls_a is None or v.walls_b is None:
+        return None
+    total = int(v.walls_a) + int(v.walls_b)
+    if total >= opts.few_walls:
+        return None
+    return (f"the pose rests on few walls: {int(v.walls_a)} + {int(v.walls_b)} wall cells of the two maps in the overlap "
+            f"(under {opts.few_walls}); its confidence does not count them, and in the benchmark one such merge in seven "
+            f"was wrong, more on real maps of a few rooms: check it (docs/benchmarks.md, \"Poses on few walls\")")
+
+
+def with_warnings(result: AlignResult, opts: AlignOptions) -> AlignResult:
+    """``result`` with :attr:`AlignResult.warnings` filled: for a taken pose, the
+    warning of :func:`few_walls_warning` (once); a declined result unchanged."""
+    if not result.success:
+        return result
+    note = few_walls_warning(result.verification, opts)
+    return result if note is None or note in result.warnings else replace(result, warnings=[*result.warnings, note])
 
 
 #: What makes a map walls everywhere (the end of the messages that say so).

@@ -53,6 +53,7 @@ from .align import (
     _matched_alone,
     _scale_disagreement,
     _structural_confidence,
+    few_walls_warning,
     align,
     crop_to_full,
     scale_prior,
@@ -1128,6 +1129,12 @@ class Merger:
                 warnings.append(f"{names[e.i]} - {names[e.j]}: {p.note}")
             else:
                 p.used = True
+        if METHODS[self.method].verified:
+            # An alignment no loop checks that rests on few walls: the user should look.
+            for i, j in bridges([(i, j) for (i, j), p in results.items() if p.used]):
+                note = few_walls_warning(results[(i, j)].result.verification, self.options)
+                if note:
+                    warnings.append(f"{names[i]} - {names[j]}: {note}")
         return poses, report, warnings
 
     def _target_resolution(self, maps, placed) -> float:

@@ -820,3 +820,16 @@ def test_align_text_says_when_the_keypoint_matches_confirmed_the_pose(shared_dat
                           text=True, timeout=TIMEOUT_S, stdin=subprocess.DEVNULL, env=_env())
     assert proc.returncode == 0, describe(proc)
     assert re.search(r"^confirmed by the keypoint matches: \d+ places agree, where chance gives [\d.]+$", proc.stdout, re.M), proc.stdout
+
+
+def test_align_prints_the_warnings_of_a_taken_pose_to_stderr(monkeypatch, capsys, sample_maps):
+    # A pose taken on few walls is printed as aligned, its warning on stderr after it (in
+    # process: the sample pair rests on many walls, so the threshold is raised here).
+    from gridmerge.cli import main as cli_main
+
+    real = cli_main.align
+    monkeypatch.setattr(cli_main, "align", lambda *args, **kw: real(*args, few_walls=10**9, **kw))
+    assert cli_main.main(["align", str(sample_maps.folder / "a.yaml"), str(sample_maps.folder / "b.yaml")]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("aligned: ")
+    assert re.fullmatch(r"gridmerge: warning: the pose rests on few walls: \d+ \+ \d+ wall cells .*\n", err), err

@@ -312,6 +312,8 @@ def _cmd_align(args) -> int:
         print(f"not aligned: {r.message}")
     if _capped_note(r, limits):
         print(_capped_note(r, limits))
+    for w in r.warnings:
+        print(f"gridmerge: warning: {w}", file=sys.stderr)
     return EXIT_OK if r.success else EXIT_DECLINED
 
 
