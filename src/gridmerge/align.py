@@ -1573,13 +1573,28 @@ def _verified(est: Estimate, judge: _Judge) -> Verification:
 def _declines(est: Estimate, judge: _Judge, opts: AlignOptions) -> bool:
     """Whether the search whose best pose is ``est`` declines it: a confidence below
     :attr:`AlignOptions.min_confidence`, or a pose :func:`_decline_reason` declines on its
-    own merits (its walls, its scale ...) whatever its confidence. Fresh simulated seed
-    62's pair 20: a's side's best, at twice the resolutions' scale, had 0.69, and only one
-    map's walls agreed there."""
+    own merits (its walls, its scale ...) whatever its confidence, or one that
+    :func:`_unsure_reason` or :func:`_crossing_reason` declines (the slide test, the last
+    and costliest rule, is not asked). Fresh simulated seed 62's pair 20: a's side's best,
+    at twice the resolutions' scale, had 0.69, and only one map's walls agreed there."""
     own = est.confidence or 0.0
     if own < opts.min_confidence:
         return True
-    return not _taken_by(est, opts, _scale_disagreement(est.transform, judge.a, judge.b))(_verified(est, judge))
+    v = _verified(est, judge)
+    if not _taken_by(est, opts, _scale_disagreement(est.transform, judge.a, judge.b))(v):
+        return True
+    # And the rules :func:`align` applies after the search, on the same maps: a pose below
+    # SURE_CONFIDENCE on fewer than ``unsure_walls`` overlap wall cells, or whose walls
+    # stand in the other map's rooms, is declined whatever the other side finds. HM3D
+    # seed 41's pair 40: a's side's best (585 px off, confidence 0.57, 35 % of its walls
+    # crossing b's rooms) kept b's side's pose (the truth, 1.0, walls 99.6 %) out as
+    # one-sided, and the pair was declined.
+    if _unsure_reason(v, own, opts):
+        return True
+    if opts.max_crossing is None:
+        return False
+    crossed = crossing(judge.a, judge.b, est.transform, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
+    return bool(_crossing_reason(crossed, opts))
 
 
 def _as_rival(v: Verification, opts: AlignOptions) -> float:
@@ -1832,7 +1847,15 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
                 wall, best, kind, runner_up, v = _decided_in_full(
                     judge, candidates, beyond, beyond_kind, lambda kept: beyond_wall >= _full_wall(kept) + _UNSETTLED_GAIN)
                 ratio, confidence = _judged(wall, runner_up, v)
-    if confidence < opts.min_confidence and opts.wall_led:
+    # A pose at a scale the maps' resolutions rule out will be declined whatever its
+    # confidence (:func:`_decline_reason`), so it neither spares the wall-led search nor
+    # sets the confidence its winner must beat. The first search's candidates include
+    # the keypoints' scales: HM3D seed 52's pair 32 was declined with such a pose (118 %
+    # off, confidence 0.77) while the wall-led search finds the truth (0.1 px, 1.0).
+    scale_off = _scale_disagreement(best, a, b)
+    ruled_out = _scale_ruled_out(scale_off, opts)
+    bar = 0.0 if ruled_out else confidence
+    if (confidence < opts.min_confidence or ruled_out) and opts.wall_led:
         # Then the wall-led correlation, which finds the right pose far more often when
         # the maps share little, but also poses that agree by chance on a small part:
         # its candidates are ranked by agreement weighed by what it rests on, every pose
@@ -1867,7 +1890,8 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
         pool = judge.correlations(scales=scales[:1], rotations=rotations, fine_deg=_WALL_LED_FINE_DEG,
                                   peaks=_WALL_LED_PEAKS, max_hypotheses=_WALL_LED_POOL)
         walls = _best_peaks(pool, _WALL_LED_OWN_PEAKS, _WALL_LED_OWN_HYPOTHESES)
-        details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4)}
+        details["overlap_seeking"] = {"confidence": round(confidence, 4), "wall_agreement": round(_full_wall(v), 4), "runner_up_ratio": round(ratio, 4),
+                                      "scale_off": round(scale_off, 4)}
         # Poses far below that share cannot be accepted: they are not refined (maps
         # that do not overlap at all, most pairs of a fleet, end here at little cost).
         led = [(t, kind) for t, kind in keypoints + [(h.transform, "walls (wall-led)") for h in walls] if judge.shared(t) >= _HOPELESS_SHARED]
@@ -1880,7 +1904,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
             second = judge.decide(poses, weighed=True, rivals=earlier)
             ratio2, confidence2 = _judged(second[0], second[3], second[4])
             wall2, shared2 = _full_wall(second[4]), second[4].overlap_fraction
-            if wall2 < _SETTLED_WALL and confidence2 > confidence:
+            if wall2 < _SETTLED_WALL and confidence2 > bar:
                 # Its walls as polished, whatever the polish gains on the scorer's sample
                 # (sought only where they may decide: below both wall bars' higher, for a
                 # winner that could be taken): simulated pair 55 of seed 5 (noisy, b's
@@ -1902,7 +1926,7 @@ def _hybrid_search(judge: _Judge, fa: Features, fb: Features, second: "_SecondLo
                     second = (value3, top3, kind3, runner3, v3)
                     ratio2, confidence2 = _judged(value3, runner3, v3)
                     in_full.add(judge._key(top3))
-            return second, ratio2, confidence2, confidence2 > confidence and passes
+            return second, ratio2, confidence2, confidence2 > bar and passes
 
         def led_search(poses):
             """:func:`judged_led` of ``poses``, and of those and the winner turned when
