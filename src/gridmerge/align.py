@@ -1591,10 +1591,8 @@ def _declines(est: Estimate, judge: _Judge, opts: AlignOptions) -> bool:
     # one-sided, and the pair was declined.
     if _unsure_reason(v, own, opts):
         return True
-    if opts.max_crossing is None:
-        return False
-    crossed = crossing(judge.a, judge.b, est.transform, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
-    return bool(_crossing_reason(crossed, opts))
+    crossed = _crossing_test(judge.a, judge.b, est.transform, opts)
+    return crossed is not None and bool(_crossing_reason(crossed, opts))
 
 
 def _as_rival(v: Verification, opts: AlignOptions) -> float:
@@ -2412,9 +2410,9 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
             message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure,
                                       scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched,
                                       runner_up_ratio=ratio) or est.one_sided
-            if not message and opts.max_crossing is not None:
-                # On the search's maps (cut, and despeckled as the search saw them).
-                crossed = crossing(ca, cb, in_cut, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
+            # On the search's maps (cut, and despeckled as the search saw them).
+            crossed = None if message else _crossing_test(ca, cb, in_cut, opts)
+            if crossed is not None:
                 crossing_note = {"share": _finite_or_none(round(crossed.share, 4)), "walls": crossed.walls}
                 message = _crossing_reason(crossed, opts)
             if not message:
@@ -2804,6 +2802,15 @@ def _decline_reason(inliers: int, v: Verification, conf: float, opts: AlignOptio
         return f"{reason}; nor does its scale agree with the maps' resolutions ({scale_off:.0%} off)"
     return (f"declined: the scale disagrees with the maps' resolutions by {scale_off:.0%} "
             f"(at most {opts.max_scale_disagreement:.0%}; --any-scale when they are unknown)")
+
+
+def _crossing_test(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, opts: AlignOptions) -> Crossing | None:
+    """The crossing test of :attr:`AlignOptions.max_crossing` on the search's maps
+    (``None`` when the rule is off): the one call :func:`align` and a first side that
+    asks whether ``align`` would decline its pose (:func:`_declines`) make."""
+    if opts.max_crossing is None:
+        return None
+    return crossing(a, b, t, depth=_CROSSING_DEPTH, max_walls=_CROSSING_EVIDENCE)
 
 
 def _slide_test(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, opts: AlignOptions,
