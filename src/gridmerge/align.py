@@ -51,7 +51,11 @@ Methods
     on the walls in its search's own frame (within 3 px, when its walls agree on half
     and agree no less after), then in the frame of the map that was not its search's
     reference, where that makes them agree clearly better there and no worse in the
-    search's frame.
+    search's frame. Last, once taken, it is moved halfway towards its polish by ICP on
+    the walls of the maps as given (not despeckled), in the finer map's frame, when that
+    polish moves b's corners 4 px at most and the pose there is still taken
+    (``details["midway"]``): the smoothed cells' optimum and the raw walls' are each off
+    the truth their own way on a few dozen wall cells.
 ``"sift"``
     The keypoint candidates alone, verified and refined the same way.
 ``"ransac"``
@@ -641,6 +645,10 @@ class Method:
         pixels (:attr:`AlignOptions.coarse_look`; ``"hybrid"``). Its ``estimate`` takes a
         keyword ``memory`` as well: what the first search learned about the maps, for the
         second.
+    midway : bool
+        ``True``: a taken pose the search judged by the walls (not one the keypoints
+        settled alone) is moved halfway towards its polish by ICP on the maps' raw walls
+        (:func:`_midway`; ``"hybrid"``). ``False``: the pose is the estimator's.
     """
 
     name: str
@@ -651,6 +659,7 @@ class Method:
     prepare: Callable[[OccupancyGrid, Features, AlignOptions], Features] | None = None
     order_free: bool = False
     coarse_look: bool = False
+    midway: bool = False
 
 
 def register_method(method: Method) -> Method:
@@ -2241,7 +2250,7 @@ def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 #: Alignment methods by name (see :class:`Method` and :func:`register_method`).
 METHODS: dict[str, Method] = {}
 register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined (default)",
-                       prepare=_look_twice, order_free=True, coarse_look=True))
+                       prepare=_look_twice, order_free=True, coarse_look=True, midway=True))
 register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined"))
 register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
 register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
@@ -2397,6 +2406,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
     v = None
     message = est.message
     conf = 0.0
+    by_structure, ratio = False, None
     if est.transform is not None:
         v = est.verification or (
             verify(despeckle(a), despeckle(b), est.transform, tolerance=opts.wall_tolerance)
@@ -2430,6 +2440,17 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
             message = "" if est.success else (est.message or "declined by the method's own rule")
     success = est.transform is not None and not message
     details = dict(est.details)
+    if success and spec.verified and spec.midway and opts.refine and _midway_applies(est, a, b, opts):
+        halfway = _midway(a, b, ca, cb, in_cut, opts)
+        if halfway is not None:
+            pose, moved = halfway
+            checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
+            if not _decline_reason(n_inl, checked, conf, opts, need_inliers=not by_structure,
+                                   scale_off=_scale_disagreement(pose, ca, cb), matched=est.matched,
+                                   runner_up_ratio=ratio):
+                est.transform = crop_to_full(pose, oa, ob)
+                v = checked
+                details["midway"] = {"polish_px": round(moved, 2)}
     if crossing_note is not None:
         details["crossing"] = crossing_note
     if slide_note is not None:
@@ -2643,6 +2664,9 @@ _FINISH_WALLS = 0.5
 #: pixels): a finishing touch, not a new pose (unbounded, it moved right poses of E5's
 #: bent Tango maps 5-10 px to where one part's walls coincide, and made them wrong).
 _FINISH_REACH = 3.0
+#: A taken pose the walls found is moved halfway to its polish by ICP on the raw walls
+#: when that polish moves b's corners no farther than this (:func:`_midway`; a's pixels).
+_MIDWAY_REACH = 4.0
 #: Wall cells (the two maps together, as sampled by the scorer) a candidate must compare
 #: for its quick score to count fully; also the floor (the two maps' wall cells in the
 #: overlap, counted in full) of a pose taken from the second map's side alone
@@ -2733,6 +2757,53 @@ def _done(value) -> Future:
     f: Future = Future()
     f.set_result(value)
     return f
+
+
+def _midway_applies(est: Estimate, a: OccupancyGrid, b: OccupancyGrid, opts: AlignOptions) -> bool:
+    """Whether :func:`_midway` may move ``est``'s taken pose: one a search of the walls
+    judged and refined (not one the keypoints settled alone), at a scale the ICP may
+    keep (within the refinement's scale prior range of the resolutions' ratio when
+    they are trusted; :meth:`_Judge._polish`)."""
+    if str(est.details.get("walls", "")).startswith("skipped"):
+        return False
+    return opts.max_scale_disagreement is None or _scale_disagreement(est.transform, a, b) <= _SCALE_PRIOR_RANGE - 1.0
+
+
+def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: OccupancyGrid, t: AffineTransform,
+            opts: AlignOptions) -> tuple[SimilarityTransform, float] | None:
+    """``(pose, moved)``: the pose halfway between ``t`` (b's cut -> a's cut, the cuts
+    ``ca`` and ``cb`` of :func:`working_maps`) and its polish by ICP on the walls of the
+    maps as given (not despeckled), in the frame of the map with the finer cells (a's
+    when they are as fine), with ``moved`` how far that polish put b's corners (the
+    cut's, a's pixels) from ``t``; ``None`` when the polish does not move them or moves
+    them farther than :data:`_MIDWAY_REACH`.
+
+    The search places a pose where the smoothed cells agree best (refined, then
+    polished where that clearly raises the walls' agreement); ICP on the raw walls
+    places it where the wall cells lie nearest each other. On a few dozen wall cells the
+    two optima lie 1-4 px apart at b's far corners, each off the truth its own way (the
+    smoothing spreads walls over free space; isolated hits, which despeckling drops,
+    still pin the walls' ends): halfway between them is nearer the truth more often than
+    either. The finer map's frame pins the walls the more finely (in the coarser map's
+    frame, or always in a's, the simulated set gained half as many precise poses, and
+    lost more: docs/benchmarks.md, sixtieth session)."""
+    ra, oa = a.crop_known(_CROP_MARGIN)
+    rb, ob = b.crop_known(_CROP_MARGIN)
+    if ra.shape != ca.shape or rb.shape != cb.shape:
+        return None  # not the search's cuts (cannot happen: the same crop)
+    found = SimilarityTransform(np.asarray(t.params, dtype=float))
+    if b.resolution < a.resolution * (1.0 - 1e-9):  # b's cells are the finer: its frame
+        polished = WallICP(rb, ra).polish(found.inverse).inverse
+    else:
+        polished = WallICP(ra, rb).polish(found)
+    h, w = cb.shape
+    box = np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
+    moved = float(np.hypot(*(polished(box) - t(box)).T).max())
+    if moved == 0.0 or moved > _MIDWAY_REACH:
+        return None
+    # Matrices of the form [[c, -s], [s, c]] are closed under averaging: the mean of two
+    # similarities is the similarity that puts every point halfway between their images.
+    return SimilarityTransform((np.asarray(t.params, dtype=float) + polished.params) / 2.0), moved
 
 
 def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True):
