@@ -2213,7 +2213,7 @@ def test_a_wall_led_pose_is_moved_halfway_to_its_polish_on_the_raw_walls(scale):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(WallICP, "__init__", init)
-        out = _midway(a, b, ca, cb, t, AlignOptions())
+        out = _midway(a, b, ca, cb, t)
     assert frames == [cb.shape if scale < 1.0 else ca.shape]  # the finer map is the ICP's reference
     assert out is not None
     pose, moved = out
@@ -2222,13 +2222,13 @@ def test_a_wall_led_pose_is_moved_halfway_to_its_polish_on_the_raw_walls(scale):
     polished = WallICP(rb, ra).polish(found.inverse).inverse if scale < 1.0 else WallICP(ra, rb).polish(found)
     pts = np.array([[0.0, 0.0], [cb.shape[1] - 1.0, 0.0], [40.0, 77.0], [0.0, cb.shape[0] - 1.0]])
     assert np.allclose(pose(pts), (t(pts) + polished(pts)) / 2.0)
-    assert moved == pytest.approx(float(np.hypot(*(polished(pts[[0, 1, 3]]) - t(pts[[0, 1, 3]])).T).max()), abs=0.3)
+    assert moved == pytest.approx(corner_error(polished, t, cb.shape))  # at b's cut's corners
     assert 0.0 < moved <= _MIDWAY_REACH
-    near = lambda u: corner_error(u, full_to_crop(truth, oa, ob), cb.shape)  # noqa: E731
-    assert near(pose) < near(t)
+    truth_cut = full_to_crop(truth, oa, ob)
+    assert corner_error(pose, truth_cut, cb.shape) < corner_error(t, truth_cut, cb.shape)
     # Beyond the reach: the pose stays (None).
     far = full_to_crop(SimilarityTransform(rotation=truth.rotation, scale=truth.scale, translation=truth.translation + [6.0, 5.0]), oa, ob)
-    assert _midway(a, b, ca, cb, far, AlignOptions()) is None
+    assert _midway(a, b, ca, cb, far) is None
 
 
 def test_the_halfway_pose_keeps_the_decision_and_skips_keypoint_settled_poses(monkeypatch):

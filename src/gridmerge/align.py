@@ -2441,7 +2441,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
     success = est.transform is not None and not message
     details = dict(est.details)
     if success and spec.verified and spec.midway and opts.refine and _midway_applies(est, a, b, opts):
-        halfway = _midway(a, b, ca, cb, in_cut, opts)
+        halfway = _midway(a, b, ca, cb, in_cut)
         if halfway is not None:
             pose, moved = halfway
             checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
@@ -2769,8 +2769,8 @@ def _midway_applies(est: Estimate, a: OccupancyGrid, b: OccupancyGrid, opts: Ali
     return opts.max_scale_disagreement is None or _scale_disagreement(est.transform, a, b) <= _SCALE_PRIOR_RANGE - 1.0
 
 
-def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: OccupancyGrid, t: AffineTransform,
-            opts: AlignOptions) -> tuple[SimilarityTransform, float] | None:
+def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: OccupancyGrid,
+            t: AffineTransform) -> tuple[SimilarityTransform, float] | None:
     """``(pose, moved)``: the pose halfway between ``t`` (b's cut -> a's cut, the cuts
     ``ca`` and ``cb`` of :func:`working_maps`) and its polish by ICP on the walls of the
     maps as given (not despeckled), in the frame of the map with the finer cells (a's
@@ -2785,12 +2785,12 @@ def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: Occupancy
     smoothing spreads walls over free space; isolated hits, which despeckling drops,
     still pin the walls' ends): halfway between them is nearer the truth more often than
     either. The finer map's frame pins the walls the more finely (in the coarser map's
-    frame, or always in a's, the simulated set gained half as many precise poses, and
-    lost more: docs/benchmarks.md, sixtieth session)."""
-    ra, oa = a.crop_known(_CROP_MARGIN)
-    rb, ob = b.crop_known(_CROP_MARGIN)
+    frame, or in the search's reference's, the simulated set gained half as many
+    precise poses net, and lost more: docs/benchmarks.md, sixtieth session)."""
+    ra, _ = a.crop_known(_CROP_MARGIN)
+    rb, _ = b.crop_known(_CROP_MARGIN)
     if ra.shape != ca.shape or rb.shape != cb.shape:
-        return None  # not the search's cuts (cannot happen: the same crop)
+        return None  # not the cuts the search judged (the same crop of the same maps)
     found = SimilarityTransform(np.asarray(t.params, dtype=float))
     if b.resolution < a.resolution * (1.0 - 1e-9):  # b's cells are the finer: its frame
         polished = WallICP(rb, ra).polish(found.inverse).inverse

@@ -27,7 +27,7 @@ def work(args):
     if str(rec['details'].get('walls','')).startswith('skipped') or (AL._scale_disagreement(t,a,b)>AL._SCALE_PRIOR_RANGE-1.0): 
         return run.split('/')[-1],cid,None,out
     tc=AL.full_to_crop(t,oa,ob)
-    r=AL._midway(a,b,ca,cb,tc,opts)
+    r=AL._midway(a,b,ca,cb,tc)
     if r is not None:
         pose,moved=r; out['moved']=moved
         chk=verify(ca,cb,pose,tolerance=opts.wall_tolerance)
