@@ -104,7 +104,7 @@ from .io.jsonable import finite
 from .matching import knn, match_nn, match_smnn, match_snn
 from .parallel import opencv_threads_split
 from .refine import WallICP, prepare_fields, refine_direct
-from .transforms import AffineTransform, SimilarityTransform, pixel_to_metric
+from .transforms import AffineTransform, SimilarityTransform, corner_error, pixel_to_metric
 from .correlate import correlation_hypotheses, match_rotation, rotation_candidates
 from .verify import Crossing, Slide, Verification, WallScorer, chance_wall_agreement, crossing, despeckle, slide, verify
 
@@ -1127,7 +1127,7 @@ class _Judge:
     def _icp_polish(self, t: AffineTransform) -> AffineTransform | None:
         """``t`` polished by ICP on the walls (once per pose), however far it moves;
         ``None`` where the scale rule of :meth:`_polish` forbids."""
-        if self.opts.max_scale_disagreement is not None and _scale_disagreement(t, self.a, self.b) > _SCALE_PRIOR_RANGE - 1.0:
+        if not _icp_keeps_scale(_scale_disagreement(t, self.a, self.b), self.opts):
             return None
         k = self._key(t)
         if k not in self._polished:
@@ -1655,7 +1655,7 @@ def _polishable(est: Estimate, judge: _Judge) -> float | None:
             or str(est.details.get("walls", "")).startswith("skipped")):
         return None
     scale_off = _scale_disagreement(t, judge.a, judge.b)
-    if opts.max_scale_disagreement is not None and scale_off > _SCALE_PRIOR_RANGE - 1.0:
+    if not _icp_keeps_scale(scale_off, opts):
         return None
     if not _taken_by(est, opts, scale_off)(est.verification):
         return None
@@ -2406,7 +2406,13 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
     v = None
     message = est.message
     conf = 0.0
-    by_structure, ratio = False, None
+
+    def declined(verification: Verification, t: AffineTransform) -> str:
+        # The decline rules of a verified method's pose, with this search's confidence
+        # (the pose as the search took it, or moved halfway by _midway).
+        return _decline_reason(n_inl, verification, conf, opts, need_inliers=not by_structure,
+                               scale_off=_scale_disagreement(t, a, b), matched=est.matched, runner_up_ratio=ratio)
+
     if est.transform is not None:
         v = est.verification or (
             verify(despeckle(a), despeckle(b), est.transform, tolerance=opts.wall_tolerance)
@@ -2417,9 +2423,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
             by_structure = est.confidence is not None
             conf = float(est.confidence) if by_structure else _confidence(n_inl, v, est.transform.min_samples)
             ratio = est.details.get("runner_up_ratio") if by_structure and not est.matched else None
-            message = _decline_reason(n_inl, v, conf, opts, need_inliers=not by_structure,
-                                      scale_off=_scale_disagreement(est.transform, a, b), matched=est.matched,
-                                      runner_up_ratio=ratio) or est.one_sided
+            message = declined(v, est.transform) or est.one_sided
             # On the search's maps (cut, and despeckled as the search saw them).
             crossed = None if message else _crossing_test(ca, cb, in_cut, opts)
             if crossed is not None:
@@ -2445,9 +2449,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
         if halfway is not None:
             pose, moved = halfway
             checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
-            if not _decline_reason(n_inl, checked, conf, opts, need_inliers=not by_structure,
-                                   scale_off=_scale_disagreement(pose, ca, cb), matched=est.matched,
-                                   runner_up_ratio=ratio):
+            if not declined(checked, pose):
                 est.transform = crop_to_full(pose, oa, ob)
                 v = checked
                 details["midway"] = {"polish_px": round(moved, 2)}
@@ -2766,7 +2768,7 @@ def _midway_applies(est: Estimate, a: OccupancyGrid, b: OccupancyGrid, opts: Ali
     they are trusted; :meth:`_Judge._polish`)."""
     if str(est.details.get("walls", "")).startswith("skipped"):
         return False
-    return opts.max_scale_disagreement is None or _scale_disagreement(est.transform, a, b) <= _SCALE_PRIOR_RANGE - 1.0
+    return _icp_keeps_scale(_scale_disagreement(est.transform, a, b), opts)
 
 
 def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: OccupancyGrid,
@@ -2796,14 +2798,12 @@ def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: Occupancy
         polished = WallICP(rb, ra).polish(found.inverse).inverse
     else:
         polished = WallICP(ra, rb).polish(found)
-    h, w = cb.shape
-    box = np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, h - 1.0], [0.0, h - 1.0]])
-    moved = float(np.hypot(*(polished(box) - t(box)).T).max())
+    moved = corner_error(polished, found, cb.shape)
     if moved == 0.0 or moved > _MIDWAY_REACH:
         return None
     # Matrices of the form [[c, -s], [s, c]] are closed under averaging: the mean of two
     # similarities is the similarity that puts every point halfway between their images.
-    return SimilarityTransform((np.asarray(t.params, dtype=float) + polished.params) / 2.0), moved
+    return SimilarityTransform((found.params + polished.params) / 2.0), moved
 
 
 def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True):
@@ -2844,6 +2844,15 @@ def _shifted(f: Features, offset: np.ndarray) -> Features:
 def _confirmed_note(details: dict) -> str:
     """What a message adds when the keypoint matches confirmed the pose."""
     return f" (confirmed by {details['confirmed_by']})" if "confirmed_by" in details else ""
+
+
+def _icp_keeps_scale(scale_off: float, opts: AlignOptions) -> bool:
+    """Whether ICP on the walls (which keeps a pose's scale) may polish a pose whose
+    scale is that far from the maps' resolution ratio (:func:`_scale_disagreement`):
+    within the refinement's scale prior range of it, or any scale when the resolutions
+    are not trusted (:attr:`AlignOptions.max_scale_disagreement` ``None``). Off the
+    ratio, it would fit one part's walls at a wrong scale (:meth:`_Judge._polish`)."""
+    return opts.max_scale_disagreement is None or scale_off <= _SCALE_PRIOR_RANGE - 1.0
 
 
 def _scale_ruled_out(scale_off: float, opts: AlignOptions) -> bool:
