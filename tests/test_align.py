@@ -2217,7 +2217,7 @@ def test_a_wall_led_pose_is_moved_halfway_to_its_polish_on_the_raw_walls(scale):
     assert frames == [cb.shape if scale < 1.0 else ca.shape]  # the finer map is the ICP's reference
     assert out is not None
     pose, moved = out
-    ra, rb = a.crop_known(8)[0], b.crop_known(8)[0]
+    ra, rb = a.crop_known(align_module._CROP_MARGIN)[0], b.crop_known(align_module._CROP_MARGIN)[0]  # the raw cuts
     found = SimilarityTransform(t.params)
     polished = WallICP(rb, ra).polish(found.inverse).inverse if scale < 1.0 else WallICP(ra, rb).polish(found)
     pts = np.array([[0.0, 0.0], [cb.shape[1] - 1.0, 0.0], [40.0, 77.0], [0.0, cb.shape[0] - 1.0]])
