@@ -2472,7 +2472,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
         matches=int(len(est.src)),
         keypoints=(len(fa), len(fb)),
         method=method,
-        message=message or f"aligned with {n_inl} inliers, confidence {conf:.2f}" + _confirmed_note(est.details),
+        message=message or _taken_message(n_inl, v if spec.verified else None, conf, est.details),
         elapsed_s=time.perf_counter() - t0,
         verification=v,
         inlier_xy=inlier_xy,
@@ -2544,17 +2544,22 @@ def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: flo
     """``r``, the alignment of ``a`` onto ``b``, as the alignment of ``b`` onto ``a``:
     the same decision, the transforms inverted, the pairs of per-map values swapped. The
     verification stays the one the decision was made on (counted in b's cells; its
-    per-map wall counts swapped)."""
+    per-map wall counts swapped, and a taken pose's message says them in that order)."""
     inverse = None if r.candidate is None else r.candidate.inverse
+    v = None if r.verification is None else r.verification.swapped()
+    message = r.message
+    if r.success and v is not None and METHODS[r.method].verified:
+        message = _taken_message(r.inliers, v, r.confidence, r.details)  # its wall counts in a, b order
     return replace(
         r,
+        message=message,
         transform=inverse if r.success else None,
         candidate=inverse,
         metric_transform=None if inverse is None else pixel_to_metric(inverse, b, a),
         keypoints=(r.keypoints[1], r.keypoints[0]),
         elapsed_s=elapsed_s,
         inlier_xy=r.inlier_xy[:, ::-1].copy(),
-        verification=None if r.verification is None else r.verification.swapped(),
+        verification=v,
         details={**r.details, "searched_from": "b"},
     )
 
@@ -2839,6 +2844,30 @@ def _shifted(f: Features, offset: np.ndarray) -> Features:
     if not offset.any():
         return f
     return replace(f, xy=f.xy + offset, blurred=None if f.blurred is None else _shifted(f.blurred, offset))
+
+
+def _taken_message(inliers: int, v: Verification | None, conf: float, details: dict) -> str:
+    """The message of a taken pose: what it rests on (its keypoint inliers, or the walls
+    alone, and how many wall cells of each map agree in the overlap, as ``v`` counts
+    them) and its confidence. A pose the walls' search found has no keypoint inliers;
+    saying only that would hide what it rests on, and a pose on a few dozen wall cells
+    is a different claim from one on thousands.
+
+    Examples
+    --------
+    >>> v = Verification(1.0, 100, 0, 0.88, 500, 0.3, walls_a=18, walls_b=28, matched_a=18, matched_b=21)
+    >>> _taken_message(0, v, 1.0, {})
+    'aligned on the walls alone (no keypoint inliers): they agree on 88% of the overlap (18 of 18 and 21 of 28 wall cells), confidence 1.00'
+    >>> _taken_message(66, None, 0.93, {})
+    'aligned with 66 inliers, confidence 0.93'
+    """
+    head = f"aligned with {inliers} inliers" if inliers else "aligned on the walls alone (no keypoint inliers)"
+    walls = ""
+    if v is not None and math.isfinite(v.wall_agreement) and v.walls_a is not None and v.walls_b is not None:
+        who = "walls" if inliers else "they"
+        walls = (f": {who} agree on {v.wall_agreement:.0%} of the overlap ({v.matched_a} of {v.walls_a} and "
+                 f"{v.matched_b} of {v.walls_b} wall cells)")
+    return f"{head}{walls}, confidence {conf:.2f}" + _confirmed_note(details)
 
 
 def _confirmed_note(details: dict) -> str:

@@ -633,6 +633,12 @@ def test_align_text(runs):
     assert float(found.group(2)) == pytest.approx(0.95, abs=0.002)
     assert re.search(r"metric .*scale 1\.00", proc.stdout), proc.stdout
     assert "inliers" in proc.stdout and "confidence" in proc.stdout
+    # What the pose rests on: each map's wall cells in the overlap, and how many agree.
+    walls = re.search(r"walls agree on (\d+)% of the overlap: (\d+) of A's (\d+) and (\d+) of B's (\d+) wall cells", proc.stdout)
+    assert walls, proc.stdout
+    share, ma, wa, mb, wb = (int(g) for g in walls.groups())
+    assert 0 < ma <= wa and 0 < mb <= wb and share >= 90
+    assert share == round(100 * (ma / wa + mb / wb) / 2)
 
 
 def test_align_paper_method(runs, sample_maps):

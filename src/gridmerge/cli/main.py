@@ -283,6 +283,16 @@ def _capped_note(result, limits: Limits) -> str:
     )
 
 
+def _walls_line(result) -> str:
+    """What a taken pose's walls say: how many of each map's wall cells in the overlap
+    lie on the other's ("" when the result does not count them)."""
+    v = result.verification
+    if v is None or v.walls_a is None or v.walls_b is None or not math.isfinite(v.wall_agreement):
+        return ""
+    return (f"walls agree on {v.wall_agreement:.0%} of the overlap: {v.matched_a} of A's {v.walls_a} "
+            f"and {v.matched_b} of B's {v.walls_b} wall cells")
+
+
 def _scale_options(args) -> dict:
     """AlignOptions of --trust-resolution and --any-scale (neither: the defaults)."""
     if args.any_scale:
@@ -306,6 +316,8 @@ def _cmd_align(args) -> int:
         print(f"aligned: rotation {r.rotation_deg:.3f} deg, scale {r.scale:.5f}, translation ({t.translation[0]:.2f}, {t.translation[1]:.2f}) px")
         print(f"metric (B's frame in A's): x {m['x']:.3f} m, y {m['y']:.3f} m, yaw {m['yaw']:.5f} rad, scale {m['scale']:.5f}")
         print(f"confidence {r.confidence:.2f}, acceptance index {r.acceptance_index:.3f}, {r.inliers} inliers of {r.matches} matches, {r.elapsed_s:.2f} s")
+        if _walls_line(r):
+            print(_walls_line(r))
         if "confirmed_by" in r.details:
             print(f"confirmed by {r.details['confirmed_by']}")
     else:
