@@ -311,6 +311,9 @@ BAD_INPUT = [
     ("output-exists", _old_output, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml"], "--force"),
     ("output-image-exists", _write("out.pgm", b"P5\n1 1\n255\n\x00"), ["merge", "a.yaml", "b.yaml", "-o", "out.yaml"], "--force"),
     ("plot-exists", _write("p.png", b"old"), ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--plot", "p.png"], "--force"),
+    ("align-plot-exists", _write("p.png", b"old"), ["align", "a.yaml", "b.yaml", "--plot", "p.png"], "--force"),
+    ("align-plot-is-input", _nothing, ["align", "a.yaml", "b.yaml", "--plot", "b.pgm", "--force"], "input"),
+    ("align-plot-folder-missing", _nothing, ["align", "a.yaml", "b.yaml", "--plot", "nowhere/p.png"], "nowhere"),
     ("unknown-option", _nothing, ["align", "a.yaml", "b.yaml", "--frobnicate"], "--frobnicate"),
     ("unknown-method", _nothing, ["align", "a.yaml", "b.yaml", "--method", "magic"], "magic"),
     ("unknown-fusion", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--fusion", "min"], "min"),
@@ -375,7 +378,8 @@ def runs(sample_maps, tmp_path_factory):
     _old_output(f)
     runner.add("merge-force", ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--force"], f)
     runner.add("merge-negative", ["merge", "neg_a.yaml", "neg_b.yaml", "-o", "out.yaml", "--plot", "p.png"], folder("merge-negative", "neg_a", "neg_b"))
-    runner.add("align-text", ["align", "a.yaml", "b.yaml"], sample_maps.folder)
+    runner.add("align-text", ["align", "a.yaml", "b.yaml", "--plot", "p.png"], folder("align-text"))
+    runner.add("align-negative-plot", ["align", "neg_a.yaml", "neg_b.yaml", "--plot", "p.png"], folder("align-negative-plot", "neg_a", "neg_b"))
     runner.add("align-negative", ["align", "neg_a.yaml", "neg_b.yaml", "--json"], sample_maps.folder)
     runner.add("align-paper", ["align", "a.yaml", "b.yaml", "--json", "--method", "paper"], sample_maps.folder)
     runner.add("align-sift", ["align", "a.yaml", "b.yaml", "--json", "--method", "sift"], sample_maps.folder)
@@ -639,6 +643,27 @@ def test_align_text(runs):
     share, ma, wa, mb, wb = (int(g) for g in walls.groups())
     assert 0 < ma <= wa and 0 < mb <= wb and share >= 90
     assert share == round(100 * (ma / wa + mb / wb) / 2)
+    # --plot: a picture of the maps on each other at the pose.
+    job = runs.get("align-text")
+    assert "wrote p.png" in proc.stdout
+    _assert_png(job.cwd / "p.png")
+
+
+def _assert_png(path):
+    data = path.read_bytes()
+    assert data.startswith(PNG_SIGNATURE)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img is not None and img.shape[0] > 100 and img.shape[1] > 100
+
+
+def test_align_plot_of_a_declined_pair(runs):
+    # Declined (exit 1), and the picture is written all the same: the candidate pose the
+    # maps were judged at, and why it was declined.
+    job = runs.get("align-negative-plot")
+    proc = job.result
+    assert proc.returncode == 1, describe(proc)
+    assert proc.stdout.startswith("not aligned: ") and "wrote p.png" in proc.stdout
+    _assert_png(job.cwd / "p.png")
 
 
 def test_align_paper_method(runs, sample_maps):

@@ -182,6 +182,10 @@ def _parser() -> argparse.ArgumentParser:
     pa.add_argument("a", metavar="A", help="reference map (map_server .yaml, .pgm/.png, or .npy)")
     pa.add_argument("b", metavar="B", help="map to align onto A")
     pa.add_argument("--resolution", dest="image_resolution", type=float, default=argparse.SUPPRESS, help="same as --image-resolution")
+    pa.add_argument("--plot", metavar="PNG",
+                    help="also write a picture of the two maps drawn on each other at the pose (a declined pair: at its "
+                    "best candidate pose), the walls that agree in black: what the pose rests on")
+    pa.add_argument("--force", action="store_true", help="overwrite an existing --plot file")
 
     pm = sub.add_parser(
         "merge",
@@ -303,10 +307,19 @@ def _scale_options(args) -> dict:
 def _cmd_align(args) -> int:
     decline = _decline_options(args)
     limits = _limits(args)
+    if args.plot:
+        from ..plot import require_matplotlib
+
+        require_matplotlib()
+        _check_output(Path(args.plot), _input_files([args.a, args.b], limits), args.force, "plot")
     a, b = _load_all([args.a, args.b], args.image_resolution, limits)
     extractor = extractor_for(args.method, limits)
     r = align(a, b, method=args.method, rng=args.seed, max_keypoints=limits.max_keypoints, extractor=extractor,
               **_scale_options(args), **decline)
+    if args.plot:
+        from ..plot import plot_alignment, save_plot
+
+        save_plot(plot_alignment(a, b, r), args.plot)
     if args.json:
         _print_json(r.to_dict())
         return EXIT_OK if r.success else EXIT_DECLINED
@@ -322,6 +335,8 @@ def _cmd_align(args) -> int:
             print(f"confirmed by {r.details['confirmed_by']}")
     else:
         print(f"not aligned: {r.message}")
+    if args.plot:
+        print(f"wrote {args.plot}")
     if _capped_note(r, limits):
         print(_capped_note(r, limits))
     for w in r.warnings:
