@@ -403,6 +403,9 @@ def test_cli_bench_case_writes_the_maps_and_the_replay(named_run, tmp_path, caps
     assert info["replayed"]["confidence"] == rec["confidence"] and info["positive"] is True
     assert len(info["records"]) == 2 and info["truth_b_to_a"] is not None
     assert (out / "merge.png").is_file() == rec["aligned"]
+    # The maps on each other at the truth, and at the replayed pose (or declined candidate).
+    for name in ("truth.png", "pose.png"):
+        assert (out / name).read_bytes().startswith(b"\x89PNG\r\n\x1a\n") and f"picture: {out / name}" in printed
     assert main(["bench", "case", str(bench.out_dir), "simulated/0000", "--out", str(out)]) == 2  # files there: --force
     assert main(["bench", "case", str(bench.out_dir), "simulated/0000", "--out", str(out), "--force"]) == 0
     assert main(["bench", "case", str(bench.out_dir), "halmstad/X-Y", "--out", str(tmp_path / "x")]) == 2

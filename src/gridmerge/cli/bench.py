@@ -171,8 +171,10 @@ def add_parser(subparsers, parents: Sequence[argparse.ArgumentParser] = ()) -> a
         parents=parents,
         help="write one case of a run as map files, and align it again as the run did",
         description="Build one case of a results folder again from its config.json and write its two maps "
-        "(a.yaml, b.yaml), case.json (truth, description, the run's records of it) and, with --method, "
-        "that method's alignment again (the same pose and confidence as recorded) and merge.png.",
+        "(a.yaml, b.yaml), case.json (truth, description, the run's records of it), truth.png (the maps "
+        "drawn on each other at the truth, the walls that agree black) and, with --method, that method's "
+        "alignment again (the same pose and confidence as recorded), pose.png (the maps at its pose, or "
+        "at its declined candidate) and merge.png.",
     )
     pk.add_argument("bench_case_run", metavar="RUN", help="results folder")
     pk.add_argument("bench_case_id", metavar="CASE_ID", help="a case_id of its cases.jsonl, e.g. simulated/0042")
@@ -314,7 +316,7 @@ def _cmd_case(args) -> int:
     from ..io import atomic_write, save_map
 
     out = Path(args.bench_case_out)
-    names = ("a.yaml", "b.yaml", "case.json", "merge.png")
+    names = ("a.yaml", "b.yaml", "case.json", "merge.png", "pose.png", "truth.png")
     if out.exists() and not out.is_dir():
         raise _BenchUsageError(f"{out} is a file")
     if not args.bench_case_force and any((out / n).exists() for n in names):
@@ -344,16 +346,30 @@ def _cmd_case(args) -> int:
                             "message": result.message}
     atomic_write(out / "case.json", (json.dumps(info, indent=2, default=str) + "\n").encode())
     print(f"{case.id}: {'positive' if case.positive else 'negative'} pair; wrote {out / 'a.yaml'}, {out / 'b.yaml'}, {out / 'case.json'}")
+    if case.truth is not None:
+        # The two maps on each other at the truth (no title: OpenCV alone writes it).
+        import cv2
+
+        from ..plot import alignment_overlay
+
+        img, _ = alignment_overlay(case.a, case.b, np.asarray(case.truth))
+        ok, png = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
+        if ok:
+            atomic_write(out / "truth.png", png.tobytes())
+            print(f"picture: {out / 'truth.png'} (the maps at the truth)")
     if result is not None:
         print(f"{method}: {result.message}")
-        if result.success:
-            try:
-                from ..plot import plot_merge, save_plot
+        try:
+            from ..plot import plot_alignment, plot_merge, save_plot
 
+            if result.success or result.candidate is not None:
+                save_plot(plot_alignment(case.a, case.b, result), out / "pose.png")
+                print(f"picture: {out / 'pose.png'} (the maps at the method's {'pose' if result.success else 'declined candidate'})")
+            if result.success:
                 save_plot(plot_merge(case.a, case.b, result, _merged(case.a, case.b, result.transform)), out / "merge.png")
                 print(f"picture: {out / 'merge.png'}")
-            except ImportError:
-                print("gridmerge: warning: merge.png skipped: matplotlib is not installed", file=sys.stderr)
+        except GridMergeError as e:  # matplotlib missing
+            print(f"gridmerge: warning: pictures skipped: {e}", file=sys.stderr)
     return EXIT_OK
 
 
