@@ -115,7 +115,7 @@ OVERLAY_COLOURS = {
 
 
 def alignment_overlay(a: OccupancyGrid, b: OccupancyGrid, transform, *, tolerance: float = 3.0, margin: int = 10,
-                      max_side: int = 2000) -> tuple[np.ndarray, tuple[int, int]]:
+                      max_side: int = 2000, line: int = 1) -> tuple[np.ndarray, tuple[int, int]]:
     """The two maps drawn on each other at ``transform``: what a pose rests on.
 
     ``b`` is moved by ``transform`` (b's pixels -> a's, an :class:`~gridmerge.transforms.AffineTransform`
@@ -128,7 +128,8 @@ def alignment_overlay(a: OccupancyGrid, b: OccupancyGrid, transform, *, toleranc
     are close to, not exactly, what the alignment counted
     (:attr:`~gridmerge.align.AlignResult.verification`). A canvas longer than
     ``max_side`` on a side is shrunk by a whole factor, a wall anywhere in a block
-    kept.
+    kept; ``line`` > 1 draws every wall cell that many cells wide (after shrinking),
+    for pictures shown smaller than their cells.
 
     Returns
     -------
@@ -197,6 +198,10 @@ def alignment_overlay(a: OccupancyGrid, b: OccupancyGrid, transform, *, toleranc
 
         layers = [(name, pooled(mask)) for name, mask in layers]
         h, w = hh, ww
+    if int(line) > 1:
+        kernel = np.ones((int(line), int(line)), np.uint8)
+        layers = [(name, cv2.dilate(mask.astype(np.uint8), kernel) > 0 if name.startswith("wall") else mask)
+                  for name, mask in layers]
     img = np.empty((h, w, 3), np.uint8)
     img[:] = OVERLAY_COLOURS["unknown"]
     for name, mask in layers:
@@ -229,6 +234,8 @@ def plot_alignment(a: OccupancyGrid, b: OccupancyGrid, alignment: AlignResult, *
         ax.set_title(f"{names}: not aligned (no pose)\n{alignment.message}", fontsize=9, wrap=True)
     else:
         img, _ = alignment_overlay(a, b, pose, tolerance=tolerance)
+        if max(img.shape[:2]) > 900:  # shown at about 800 pixels: one-cell walls would vanish
+            img, _ = alignment_overlay(a, b, pose, tolerance=tolerance, line=int(np.ceil(max(img.shape[:2]) / 600)))
         ax.imshow(img, interpolation="nearest")
         v = alignment.verification
         walls = ""
