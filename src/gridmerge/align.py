@@ -233,6 +233,17 @@ class AlignOptions:
         seeds 0-2, 9 of the 15 wrong or false merges lay below 0.8 on fewer than 10 000,
         and 3 of the 68 right ones. docs/benchmarks.md, forty-fifth session. ``None``
         skips the test (CLI ``--unsure-walls``).
+    few_walls_agreement : float or None
+        Decline a pose resting on fewer than :data:`FEW_WALLS_EVIDENCE` (200) wall cells
+        in the overlap (both maps' together, as ``result.verification`` counts them)
+        whose walls agree on less than this share of them, whatever its confidence (whose
+        wall term is full from 70 %). Where the two maps share only a few walls, the
+        walls of a right pose lie on each other (on the stored runs' 424 right poses on
+        fewer than 200 wall cells, 4 agree on less than 75 %, the least 70 %), while a
+        chance fit of two places, or of the wrong part, lays a few walls on walls and the
+        rest beside them (8 of the 27 wrong or false merges there agree on 61-72 %).
+        docs/benchmarks.md, sixty-first session. ``None`` skips the test (CLI
+        ``--few-walls-agreement``).
     max_keypoints : int
         Strongest keypoints kept per map (bounds time and memory).
     feature_pixels : int
@@ -374,6 +385,7 @@ class AlignOptions:
     max_slide: float | None = 0.75
     max_crossing: float | None = 0.2
     unsure_walls: int | None = 10000
+    few_walls_agreement: float | None = 0.75
     max_keypoints: int = 20000
     feature_pixels: int = 400_000
     keypoints_first: float = 0.9
@@ -1583,7 +1595,7 @@ def _declines(est: Estimate, judge: _Judge, opts: AlignOptions) -> bool:
     """Whether the search whose best pose is ``est`` declines it: a confidence below
     :attr:`AlignOptions.min_confidence`, or a pose :func:`_decline_reason` declines on its
     own merits (its walls, its scale ...) whatever its confidence, or one that
-    :func:`_unsure_reason` or :func:`_crossing_reason` declines (the slide test, the last
+    :func:`_unsure_reason`, :func:`_few_walls_reason` or :func:`_crossing_reason` declines (the slide test, the last
     and costliest rule, is not asked). Fresh simulated seed 62's pair 20: a's side's best,
     at twice the resolutions' scale, had 0.69, and only one map's walls agreed there."""
     own = est.confidence or 0.0
@@ -1598,7 +1610,7 @@ def _declines(est: Estimate, judge: _Judge, opts: AlignOptions) -> bool:
     # seed 41's pair 40: a's side's best (585 px off, confidence 0.57, 35 % of its walls
     # crossing b's rooms) kept b's side's pose (the truth, 1.0, walls 99.6 %) out as
     # one-sided, and the pair was declined.
-    if _unsure_reason(v, own, opts):
+    if _unsure_reason(v, own, opts) or _few_walls_reason(v, opts):
         return True
     crossed = _crossing_test(judge.a, judge.b, est.transform, opts)
     return crossed is not None and bool(_crossing_reason(crossed, opts))
@@ -2430,7 +2442,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
                 crossing_note = {"share": _finite_or_none(round(crossed.share, 4)), "walls": crossed.walls}
                 message = _crossing_reason(crossed, opts)
             if not message:
-                message = _unsure_reason(v, conf, opts)
+                message = _unsure_reason(v, conf, opts) or _few_walls_reason(v, opts)
             if not message and opts.max_slide is not None:
                 if est.slid is not None and est.slid[0] is in_cut:  # measured by the search meanwhile
                     slid = est.slid[1]
@@ -2449,7 +2461,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
         if halfway is not None:
             pose, moved = halfway
             checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
-            if not declined(checked, pose):
+            if not declined(checked, pose) and not _few_walls_reason(checked, opts):
                 est.transform = crop_to_full(pose, oa, ob)
                 v = checked
                 details["midway"] = {"polish_px": round(moved, 2)}
@@ -2571,6 +2583,9 @@ _SLIDE_FRACTION = 0.15
 #: :attr:`AlignOptions.unsure_walls`: below this confidence a pose needs that many overlap
 #: wall cells.
 SURE_CONFIDENCE = 0.8
+#: :attr:`AlignOptions.few_walls_agreement`: poses resting on fewer overlap wall cells
+#: than this (both maps' together) need that wall agreement.
+FEW_WALLS_EVIDENCE = 200
 
 #: :attr:`AlignOptions.max_crossing`: a wall counts as crossing the other map's open
 #: space this many cells (the finer map's) inside it, and the test judges poses resting
@@ -2951,6 +2966,20 @@ def _unsure_reason(v: Verification, conf: float, opts: AlignOptions) -> str:
     shown = math.floor(conf * 100) / 100  # 0.7996 reads 0.79, below the bar it is judged by
     return (f"declined: confidence {shown:.2f} on {walls} overlap wall cells; below {SURE_CONFIDENCE} a pose needs "
             f"{opts.unsure_walls} (a building's walls agreeing in part, not a few rooms')")
+
+
+def _few_walls_reason(v: Verification, opts: AlignOptions) -> str:
+    """Why a pose whose walls agree so little on so few overlap wall cells is declined
+    ("" when it is not: :attr:`AlignOptions.few_walls_agreement`)."""
+    if opts.few_walls_agreement is None or v.walls_a is None or v.walls_b is None:
+        return ""
+    walls = v.walls_a + v.walls_b
+    if walls >= FEW_WALLS_EVIDENCE or not v.wall_agreement < opts.few_walls_agreement:  # NaN: other rules judge
+        return ""
+    shown = math.floor(v.wall_agreement * 100) / 100  # 74.6 % reads 74 %, below the bar it is judged by
+    return (f"declined: walls agree on {shown:.0%} of the overlap, on only {walls} wall cells of the two maps; "
+            f"on fewer than {FEW_WALLS_EVIDENCE} a pose needs {opts.few_walls_agreement:.0%} (a few walls of two "
+            f"places, or of the wrong part, agree in part by chance)")
 
 
 def _slide_reason(slid: Slide, opts: AlignOptions) -> str:

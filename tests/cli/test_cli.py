@@ -336,6 +336,8 @@ BAD_INPUT = [
     ("unsure-walls-fraction", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--unsure-walls", "0.5"], "whole number"),
     ("unsure-walls-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--unsure-walls", "5"], "own rule"),
     ("overlap-walls-negative", _nothing, ["align", "a.yaml", "b.yaml", "--min-overlap-walls", "-3"], "0 or more"),
+    ("few-walls-agreement-above-one", _nothing, ["align", "a.yaml", "b.yaml", "--few-walls-agreement", "1.2"], "0 to 1"),
+    ("few-walls-agreement-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--few-walls-agreement", "0.5"], "own rule"),
     ("overlap-walls-with-baseline", _nothing, ["merge", "a.yaml", "b.yaml", "-o", "out.yaml", "--method", "orb", "--min-overlap-walls", "5"], "own rule"),
     # The baselines decline by their authors' rules: a threshold would be silently ignored.
     ("threshold-with-baseline", _nothing, ["align", "a.yaml", "b.yaml", "--method", "orb", "--min-confidence", "0.4"], "own rule"),
@@ -464,6 +466,8 @@ def test_decline_help_states_the_rules_fixed_values(monkeypatch):
     monkeypatch.setattr(align_module, "_CROSSING_EVIDENCE", 2500)
     assert "confidence below 0.85 resting" in _decline.help_text("unsure_walls")
     assert "fewer than 2500 overlap wall cells" in _decline.help_text("max_crossing")
+    monkeypatch.setattr(align_module, "FEW_WALLS_EVIDENCE", 150)
+    assert "fewer than 150 overlap wall cells" in _decline.help_text("few_walls_agreement")
 
 
 def test_only_the_program_lets_the_allocator_keep_freed_memory(monkeypatch, capsys):

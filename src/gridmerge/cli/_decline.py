@@ -1,6 +1,6 @@
 """The decline thresholds on the command line: ``--min-confidence``,
-``--one-sided-confidence``, ``--max-slide``, ``--max-crossing``, ``--unsure-walls`` and
-``--min-overlap-walls``, shared by ``align``, ``merge`` and ``bench``.
+``--one-sided-confidence``, ``--max-slide``, ``--max-crossing``, ``--unsure-walls``,
+``--min-overlap-walls`` and ``--few-walls-agreement``, shared by ``align``, ``merge`` and ``bench``.
 
 They set :class:`gridmerge.align.AlignOptions` fields of gridmerge's own methods (those
 whose success the verification decides, :attr:`gridmerge.align.Method.verified`). The
@@ -24,6 +24,7 @@ FLAGS = {
     "--max-crossing": "max_crossing",
     "--unsure-walls": "unsure_walls",
     "--min-overlap-walls": "min_overlap_walls",
+    "--few-walls-agreement": "few_walls_agreement",
 }
 
 _HELP = {
@@ -38,6 +39,9 @@ _HELP = {
     "inside the other map's open space, 0 to 1 (default {d}; maps of two places laid room on room); 1 turns it off",
     "unsure_walls": "decline a pose of confidence below {sure:g} resting on fewer than N overlap wall cells (default {d}; "
     "a few rooms of a repetitive building agree in part by chance, a whole building does not); 0 turns it off",
+    "few_walls_agreement": "decline a pose resting on fewer than {few} overlap wall cells (both maps') whose walls "
+    "agree on less than C of them, whatever its confidence, 0 to 1 (default {d}; a few walls of two places agree in "
+    "part by chance, a right pose's lie on each other); 0 turns it off",
     "min_overlap_walls": "decline a pose whose overlap holds fewer than N wall cells of either map, whatever its "
     "confidence (default {d}); higher declines more poses resting on a few walls, right and wrong: "
     "docs/benchmarks.md, 'The decline threshold'",
@@ -84,9 +88,10 @@ def help_text(field: str) -> str:
     """The flag's help, with AlignOptions' default and the rules' fixed values (the
     confidence above which ``--unsure-walls`` spares a pose, the walls that exempt a pose
     from ``--max-crossing``), read from :mod:`gridmerge.align`."""
-    from ..align import _CROSSING_EVIDENCE, SURE_CONFIDENCE, AlignOptions
+    from ..align import _CROSSING_EVIDENCE, FEW_WALLS_EVIDENCE, SURE_CONFIDENCE, AlignOptions
 
-    return _HELP[field].format(d=getattr(AlignOptions(), field), sure=SURE_CONFIDENCE, walls=_CROSSING_EVIDENCE)
+    return _HELP[field].format(d=getattr(AlignOptions(), field), sure=SURE_CONFIDENCE, walls=_CROSSING_EVIDENCE,
+                               few=FEW_WALLS_EVIDENCE)
 
 
 def overrides(values: dict) -> dict:
