@@ -2560,8 +2560,10 @@ def _inverted(r: AlignResult, a: OccupancyGrid, b: OccupancyGrid, elapsed_s: flo
     inverse = None if r.candidate is None else r.candidate.inverse
     v = None if r.verification is None else r.verification.swapped()
     message = r.message
-    if r.success and v is not None and METHODS[r.method].verified:
-        message = _taken_message(r.inliers, v, r.confidence, r.details)  # its wall counts in a, b order
+    if r.success and v is not None:
+        # A taken pose's message counts each map's walls: in a, b order (whatever follows
+        # it, e.g. the coarser look's note, stays).
+        message = message.replace(_walls_clause(r.inliers, r.verification), _walls_clause(r.inliers, v), 1)
     return replace(
         r,
         message=message,
@@ -2877,12 +2879,17 @@ def _taken_message(inliers: int, v: Verification | None, conf: float, details: d
     'aligned with 66 inliers, confidence 0.93'
     """
     head = f"aligned with {inliers} inliers" if inliers else "aligned on the walls alone (no keypoint inliers)"
-    walls = ""
-    if v is not None and math.isfinite(v.wall_agreement) and v.walls_a is not None and v.walls_b is not None:
-        who = "walls" if inliers else "they"
-        walls = (f": {who} agree on {v.wall_agreement:.0%} of the overlap ({v.matched_a} of {v.walls_a} and "
-                 f"{v.matched_b} of {v.walls_b} wall cells)")
-    return f"{head}{walls}, confidence {conf:.2f}" + _confirmed_note(details)
+    return f"{head}{_walls_clause(inliers, v)}, confidence {conf:.2f}" + _confirmed_note(details)
+
+
+def _walls_clause(inliers: int, v: Verification | None) -> str:
+    """The part of :func:`_taken_message` that counts each map's walls, in a, b order
+    ("" when ``v`` does not count them)."""
+    if v is None or not math.isfinite(v.wall_agreement) or v.walls_a is None or v.walls_b is None:
+        return ""
+    who = "walls" if inliers else "they"
+    return (f": {who} agree on {v.wall_agreement:.0%} of the overlap ({v.matched_a} of {v.walls_a} and "
+            f"{v.matched_b} of {v.walls_b} wall cells)")
 
 
 def _confirmed_note(details: dict) -> str:
