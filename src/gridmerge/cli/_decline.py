@@ -87,8 +87,14 @@ def metavar(field: str) -> str:
 def help_text(field: str) -> str:
     """The flag's help, with AlignOptions' default and the rules' fixed values (the
     confidence above which ``--unsure-walls`` spares a pose, the walls that exempt a pose
-    from ``--max-crossing``), read from :mod:`gridmerge.align`."""
-    from ..align import _CROSSING_EVIDENCE, FEW_WALLS_EVIDENCE, SURE_CONFIDENCE, AlignOptions
+    from ``--max-crossing``, those below which ``--few-walls-agreement`` judges one), read
+    from :mod:`gridmerge.align`."""
+    from ..align import (
+        _CROSSING_EVIDENCE,
+        FEW_WALLS_EVIDENCE,
+        SURE_CONFIDENCE,
+        AlignOptions,
+    )
 
     return _HELP[field].format(d=getattr(AlignOptions(), field), sure=SURE_CONFIDENCE, walls=_CROSSING_EVIDENCE,
                                few=FEW_WALLS_EVIDENCE)
