@@ -2885,11 +2885,10 @@ def _taken_message(inliers: int, v: Verification | None, conf: float, details: d
 def _walls_clause(inliers: int, v: Verification | None) -> str:
     """The part of :func:`_taken_message` that counts each map's walls, in a, b order
     ("" when ``v`` does not count them)."""
-    if v is None or not math.isfinite(v.wall_agreement) or v.walls_a is None or v.walls_b is None:
+    counts = "" if v is None else v.wall_counts()
+    if not counts:
         return ""
-    who = "walls" if inliers else "they"
-    return (f": {who} agree on {v.wall_agreement:.0%} of the overlap ({v.matched_a} of {v.walls_a} and "
-            f"{v.matched_b} of {v.walls_b} wall cells)")
+    return f": {'walls' if inliers else 'they'} agree on {v.wall_agreement:.0%} of the overlap ({counts})"
 
 
 def _confirmed_note(details: dict) -> str:

@@ -114,8 +114,14 @@ OVERLAY_COLOURS = {
 }
 
 
+#: :func:`alignment_overlay` with ``line=None``: pictures up to this many cells on a side
+#: draw one-cell walls; larger ones a cell of wall per this many cells of side.
+_SHOWN_SIDE = 900
+_CELLS_PER_LINE = 600
+
+
 def alignment_overlay(a: OccupancyGrid, b: OccupancyGrid, transform, *, tolerance: float = 3.0, margin: int = 10,
-                      max_side: int = 2000, line: int = 1) -> tuple[np.ndarray, tuple[int, int]]:
+                      max_side: int = 2000, line: int | None = 1) -> tuple[np.ndarray, tuple[int, int]]:
     """The two maps drawn on each other at ``transform``: what a pose rests on.
 
     ``b`` is moved by ``transform`` (b's pixels -> a's, an :class:`~gridmerge.transforms.AffineTransform`
@@ -129,7 +135,9 @@ def alignment_overlay(a: OccupancyGrid, b: OccupancyGrid, transform, *, toleranc
     (:attr:`~gridmerge.align.AlignResult.verification`). A canvas longer than
     ``max_side`` on a side is shrunk by a whole factor, a wall anywhere in a block
     kept; ``line`` > 1 draws every wall cell that many cells wide (after shrinking),
-    for pictures shown smaller than their cells.
+    for pictures shown smaller than their cells; ``None`` chooses it for a picture
+    shown at about 800 pixels: one cell up to 900 on a side, else a cell per 600
+    (rounded up), so that one-cell walls do not vanish.
 
     Returns
     -------
@@ -198,6 +206,9 @@ def alignment_overlay(a: OccupancyGrid, b: OccupancyGrid, transform, *, toleranc
 
         layers = [(name, pooled(mask)) for name, mask in layers]
         h, w = hh, ww
+    if line is None:
+        side = max(h, w)
+        line = 1 if side <= _SHOWN_SIDE else int(np.ceil(side / _CELLS_PER_LINE))
     if int(line) > 1:
         kernel = np.ones((int(line), int(line)), np.uint8)
         layers = [(name, cv2.dilate(mask.astype(np.uint8), kernel) > 0 if name.startswith("wall") else mask)
@@ -233,15 +244,11 @@ def plot_alignment(a: OccupancyGrid, b: OccupancyGrid, alignment: AlignResult, *
         ax.imshow(img, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
         ax.set_title(f"{names}: not aligned (no pose)\n{alignment.message}", fontsize=9, wrap=True)
     else:
-        img, _ = alignment_overlay(a, b, pose, tolerance=tolerance)
-        if max(img.shape[:2]) > 900:  # shown at about 800 pixels: one-cell walls would vanish
-            img, _ = alignment_overlay(a, b, pose, tolerance=tolerance, line=int(np.ceil(max(img.shape[:2]) / 600)))
+        img, _ = alignment_overlay(a, b, pose, tolerance=tolerance, line=None)  # shown at about 800 pixels
         ax.imshow(img, interpolation="nearest")
         v = alignment.verification
-        walls = ""
-        if v is not None and v.walls_a is not None and v.walls_b is not None and np.isfinite(v.wall_agreement):
-            walls = (f"; walls agree on {v.wall_agreement:.0%} of the overlap ({v.matched_a} of a's {v.walls_a}, "
-                     f"{v.matched_b} of b's {v.walls_b} wall cells)")
+        counts = "" if v is None else v.wall_counts(("a", "b"))
+        walls = f"; walls agree on {v.wall_agreement:.0%} of the overlap ({counts})" if counts else ""
         if alignment.success:
             head = f"{names}: aligned, confidence {alignment.confidence:.2f}{walls}"
             sub = "red: a's walls, blue: b's, black: walls that agree in the overlap (white)"

@@ -82,6 +82,22 @@ class Verification:
     def to_dict(self) -> dict:
         return {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in asdict(self).items()}
 
+    def wall_counts(self, names: tuple[str, str] | None = None) -> str:
+        """Each map's wall cells in the overlap and how many lie on the other's walls, in
+        words ("18 of 18 and 21 of 28 wall cells"; with ``names``, "18 of A's 18 and 21 of
+        B's 28 wall cells"); "" when they were not counted or the overlap holds no wall.
+
+        Examples
+        --------
+        >>> v = Verification(1.0, 100, 0, 0.88, 500, 0.3, walls_a=18, walls_b=28, matched_a=18, matched_b=21)
+        >>> v.wall_counts(), v.wall_counts(("A", "B"))
+        ('18 of 18 and 21 of 28 wall cells', "18 of A's 18 and 21 of B's 28 wall cells")
+        """
+        if self.walls_a is None or self.walls_b is None or not math.isfinite(self.wall_agreement):
+            return ""
+        na, nb = ("", "") if names is None else (f"{names[0]}'s ", f"{names[1]}'s ")
+        return f"{self.matched_a} of {na}{self.walls_a} and {self.matched_b} of {nb}{self.walls_b} wall cells"
+
     def swapped(self) -> "Verification":
         """The same verification with the two maps' roles exchanged (the per-map counts
         swapped; the shared counts and shares are symmetric already)."""

@@ -291,10 +291,8 @@ def _walls_line(result) -> str:
     """What a taken pose's walls say: how many of each map's wall cells in the overlap
     lie on the other's ("" when the result does not count them)."""
     v = result.verification
-    if v is None or v.walls_a is None or v.walls_b is None or not math.isfinite(v.wall_agreement):
-        return ""
-    return (f"walls agree on {v.wall_agreement:.0%} of the overlap: {v.matched_a} of A's {v.walls_a} "
-            f"and {v.matched_b} of B's {v.walls_b} wall cells")
+    counts = "" if v is None else v.wall_counts(("A", "B"))
+    return f"walls agree on {v.wall_agreement:.0%} of the overlap: {counts}" if counts else ""
 
 
 def _scale_options(args) -> dict:
