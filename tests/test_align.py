@@ -2265,7 +2265,7 @@ def test_a_wall_led_pose_is_moved_halfway_to_its_polish_on_the_raw_walls(scale):
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(WallICP, "__init__", init)
-        out = _midway(a, b, ca, cb, t)
+        out = _midway(a, b, t)
     assert frames == [cb.shape if scale < 1.0 else ca.shape]  # the finer map is the ICP's reference
     assert out is not None
     pose, moved = out
@@ -2280,7 +2280,7 @@ def test_a_wall_led_pose_is_moved_halfway_to_its_polish_on_the_raw_walls(scale):
     assert corner_error(pose, truth_cut, cb.shape) < corner_error(t, truth_cut, cb.shape)
     # Beyond the reach: the pose stays (None).
     far = full_to_crop(SimilarityTransform(rotation=truth.rotation, scale=truth.scale, translation=truth.translation + [6.0, 5.0]), oa, ob)
-    assert _midway(a, b, ca, cb, far) is None
+    assert _midway(a, b, far) is None
 
 
 def test_the_halfway_pose_keeps_the_decision_and_skips_keypoint_settled_poses(monkeypatch):

@@ -2457,7 +2457,7 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
     success = est.transform is not None and not message
     details = dict(est.details)
     if success and spec.verified and spec.midway and opts.refine and _midway_applies(est, a, b, opts):
-        halfway = _midway(a, b, ca, cb, in_cut)
+        halfway = _midway(a, b, in_cut)
         if halfway is not None:
             pose, moved = halfway
             checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
@@ -2793,10 +2793,9 @@ def _midway_applies(est: Estimate, a: OccupancyGrid, b: OccupancyGrid, opts: Ali
     return _icp_keeps_scale(_scale_disagreement(est.transform, a, b), opts)
 
 
-def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: OccupancyGrid,
-            t: AffineTransform) -> tuple[SimilarityTransform, float] | None:
-    """``(pose, moved)``: the pose halfway between ``t`` (b's cut -> a's cut, the cuts
-    ``ca`` and ``cb`` of :func:`working_maps`) and its polish by ICP on the walls of the
+def _midway(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform) -> tuple[SimilarityTransform, float] | None:
+    """``(pose, moved)``: the pose halfway between ``t`` (b's cut -> a's cut, the cuts of
+    :func:`working_maps`) and its polish by ICP on the walls of the
     maps as given (not despeckled), in the frame of the map with the finer cells (a's
     when they are as fine), with ``moved`` how far that polish put b's corners (the
     cut's, a's pixels) from ``t``; ``None`` when the polish does not move them or moves
@@ -2811,16 +2810,14 @@ def _midway(a: OccupancyGrid, b: OccupancyGrid, ca: OccupancyGrid, cb: Occupancy
     either. The finer map's frame pins the walls the more finely (in the coarser map's
     frame, or in the search's reference's, the simulated set gained half as many
     precise poses net, and lost more: docs/benchmarks.md, sixtieth session)."""
-    ra, _ = a.crop_known(_CROP_MARGIN)
-    rb, _ = b.crop_known(_CROP_MARGIN)
-    if ra.shape != ca.shape or rb.shape != cb.shape:
-        return None  # not the cuts the search judged (the same crop of the same maps)
+    ra, _ = _working_map(a, despeckled=False)  # working_maps' cuts, not despeckled
+    rb, _ = _working_map(b, despeckled=False)
     found = SimilarityTransform(np.asarray(t.params, dtype=float))
     if b.resolution < a.resolution * (1.0 - 1e-9):  # b's cells are the finer: its frame
         polished = WallICP(rb, ra).polish(found.inverse).inverse
     else:
         polished = WallICP(ra, rb).polish(found)
-    moved = corner_error(polished, found, cb.shape)
+    moved = corner_error(polished, found, rb.shape)
     if moved == 0.0 or moved > _MIDWAY_REACH:
         return None
     # Matrices of the form [[c, -s], [s, c]] are closed under averaging: the mean of two
