@@ -2317,3 +2317,80 @@ def test_the_halfway_pose_keeps_the_decision_and_skips_keypoint_settled_poses(mo
     for method in ("sift", "paper"):
         other = align(a, b, method=method, rng=0, options=searched)
         assert other.success and "midway" not in other.details
+
+
+def test_a_pose_off_its_walls_is_moved_to_the_pose_near_it_where_they_agree():
+    # _widened: from 12-28 px off (beyond ICP's reach), the pose whose walls agree best
+    # within 2 degrees and 20 px, polished: on the truth; nothing for a pose on its walls.
+    from gridmerge.align import _widened, crop_to_full, full_to_crop, working_maps
+
+    a, b, truth = samples.robot_pair(0)
+    truth = SimilarityTransform(truth)
+    ca, oa, cb, ob = working_maps(a, b)
+    for dx, dy, turn in [(8.0, 6.0, 0.015), (0.0, 0.0, 0.03)]:
+        off = SimilarityTransform(rotation=truth.rotation + turn, scale=truth.scale, translation=truth.translation + [dx, dy])
+        out = _widened(ca, cb, full_to_crop(off, oa, ob))
+        assert out is not None
+        pose, (before, after) = out
+        assert before < 0.5 and after > 0.95
+        assert corner_error(crop_to_full(pose, oa, ob), truth, b.shape) < 0.5
+    on = _widened(ca, cb, full_to_crop(crop_to_full(pose, oa, ob), oa, ob))
+    assert on is None
+    # Not when the better pose agrees by less than _WIDEN_GAIN more, nor on fewer than
+    # _WIDEN_WALLS wall cells of either map in the overlap.
+    t = full_to_crop(off, oa, ob)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(align_module, "_WIDEN_GAIN", 1.0)
+        assert _widened(ca, cb, t) is None
+    with pytest.MonkeyPatch.context() as mp:
+        walls = verify_module.verify(ca, cb, t, tolerance=align_module._WIDEN_TOLERANCE)
+        mp.setattr(align_module, "_WIDEN_WALLS", min(walls.walls_a, walls.walls_b) + 1)
+        assert _widened(ca, cb, t) is None
+        mp.setattr(align_module, "_WIDEN_WALLS", min(walls.walls_a, walls.walls_b))
+        assert _widened(ca, cb, t) is not None
+
+
+def test_a_pose_is_searched_at_the_resolutions_ratio_when_its_scale_is_off_it():
+    from gridmerge.align import _widened, crop_to_full, full_to_crop, working_maps
+
+    a, b, truth = samples.robot_pair(0, scale=0.8, rotation_deg=25)
+    truth = SimilarityTransform(truth)
+    ratio = b.resolution / a.resolution
+    assert truth.scale == pytest.approx(ratio)
+    ca, oa, cb, ob = working_maps(a, b)
+    off = full_to_crop(SimilarityTransform(rotation=truth.rotation, scale=truth.scale * 1.015,
+                                           translation=truth.translation + [3.0, -2.0]), oa, ob)
+    pose, _ = _widened(ca, cb, off, ratio)
+    assert pose.scale == pytest.approx(ratio, rel=1e-6)
+    assert corner_error(crop_to_full(pose, oa, ob), truth, b.shape) < 0.5
+    kept = _widened(ca, cb, off)  # resolutions not trusted: the scale stays
+    assert kept is None or kept[0].scale == pytest.approx(off.scale, rel=1e-6)
+
+
+def test_align_moves_a_taken_pose_to_where_its_walls_agree_and_keeps_the_decision(monkeypatch):
+    # A taken pose 12 px off (here: the halfway pose, made so) is moved to the truth
+    # (details["widened"]; the verification reported is the new pose's); a widened pose
+    # the decline rules would refuse is not taken; the other methods are not widened.
+    a, b, truth = samples.robot_pair(0)
+    truth = SimilarityTransform(truth)
+    searched = AlignOptions(keypoints_first=0)
+    ca, oa, cb, ob = align_module.working_maps(a, b)
+    off = SimilarityTransform(rotation=truth.rotation + 0.015, scale=truth.scale, translation=truth.translation + [8.0, 6.0])
+    monkeypatch.setattr(align_module, "_midway", lambda *args: (align_module.full_to_crop(off, oa, ob), 1.0))
+    r = align(a, b, rng=0, options=searched)
+    assert r.success and "midway" in r.details and "widened" in r.details
+    assert corner_error(r.transform, truth, b.shape) < 0.5
+    before, after = r.details["widened"]["walls"]
+    assert before < 0.5 and after > 0.95
+    assert r.details["widened"]["moved_px"] > 10.0
+    assert r.verification.wall_agreement == pytest.approx(
+        verify_module.verify(ca, cb, align_module.full_to_crop(r.transform, oa, ob), tolerance=searched.wall_tolerance).wall_agreement)
+    # A widened pose the rules decline is not taken: the pose stays where it was.
+    away = SimilarityTransform(translation=[500.0, 500.0])
+    monkeypatch.setattr(align_module, "_widened", lambda *args: (away, (0.4, 0.9)))
+    kept = align(a, b, rng=0, options=searched)
+    assert kept.success and "widened" not in kept.details
+    assert corner_error(kept.transform, off, b.shape) < 1e-6
+    for method in ("sift", "paper"):
+        other = align(a, b, method=method, rng=0, options=searched)
+        assert "widened" not in other.details

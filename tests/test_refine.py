@@ -7,7 +7,7 @@ import pytest
 
 from gridmerge import OccupancyGrid, samples
 from gridmerge import refine as refine_mod
-from gridmerge.refine import WallICP, _a_field, _corner_shift, _blurred_free, _facing, _plane_step, _same_face, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
+from gridmerge.refine import WallICP, wall_search, _a_field, _corner_shift, _blurred_free, _facing, _plane_step, _same_face, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
 from gridmerge.transforms import SimilarityTransform, corner_error
 
 
@@ -501,3 +501,55 @@ def test_chamfer_norms_are_opencvs_distances():
     d = cv2.distanceTransform(img, cv2.DIST_L2, 5)
     ys, xs = np.mgrid[-n : n + 1, -n : n + 1]
     assert np.allclose(_chamfer_norms()[np.abs(ys), np.abs(xs)], d, atol=1e-3)
+
+
+# --- wall_search: starts for ICP beyond its reach --------------------------------------
+
+
+@pytest.mark.parametrize("off", [(12.0, -9.0, 0.02), (15.0, 0.0, 0.0), (0.0, 0.0, 0.03)])
+def test_wall_search_finds_the_walls_beyond_icps_reach(robots, off):
+    # 15-28 px (up to 1.7 degrees) off at b's corners: ICP alone stays 7-13 px off; the
+    # search's best start, polished, lands on the truth; the same starts every time.
+    a, b, truth = robots
+    dx, dy, turn = off
+    start = SimilarityTransform(rotation=truth.rotation + turn, scale=truth.scale, translation=truth.translation + [dx, dy])
+    icp = WallICP(a, b)
+    assert corner_error(icp.polish(start), truth, b.shape) > 5.0
+    starts = wall_search(a, b, start)
+    assert 1 <= len(starts) <= 6
+    assert all(math.isclose(s.scale, start.scale) for s in starts)  # the scale is kept
+    assert corner_error(icp.polish(starts[0]), truth, b.shape) < 0.5
+    again = wall_search(a, b, start)
+    assert all(np.array_equal(s.params, t.params) for s, t in zip(starts, again))
+
+
+def test_wall_search_at_another_scale_finds_a_pose_off_in_scale(robots):
+    a, b, truth = robots
+    start = SimilarityTransform(rotation=truth.rotation, scale=truth.scale * 1.02, translation=truth.translation + [4.0, -3.0])
+    icp = WallICP(a, b)
+    kept = wall_search(a, b, start)
+    assert all(math.isclose(s.scale, start.scale) for s in kept)
+    assert min(corner_error(icp.polish(s), truth, b.shape) for s in kept) > 2.0  # held at the wrong scale
+    both = wall_search(a, b, start, scales=(1.0, 1 / 1.02))
+    assert any(math.isclose(s.scale, truth.scale) for s in both)
+    assert min(corner_error(icp.polish(s), truth, b.shape) for s in both) < 0.5
+
+
+def test_wall_search_without_walls_or_overlap_has_no_start(robots):
+    a, b, truth = robots
+    empty = OccupancyGrid(np.where(b.occupied(), 0.0, b.data))
+    assert wall_search(a, empty, truth) == []
+    away = SimilarityTransform(translation=(5000.0, 5000.0)) @ truth  # b lands off a
+    assert wall_search(a, b, away) == []
+
+
+def test_a_thinned_wall_icp_shares_the_tables_and_uses_fewer_cells(robots):
+    a, b, truth = robots
+    icp = WallICP(a, b)
+    thin = icp.thinned(300)
+    assert len(icp._maps[0][1]) > 300 and len(thin._maps[0][1]) == 300 and len(thin._maps[1][1]) == 300
+    assert thin._maps[0][0] is icp._maps[0][0] and thin._maps[1][0] is icp._maps[1][0]
+    assert np.array_equal(thin._maps[0][3], icp._maps[0][3][refine_mod._evenly(len(icp._maps[0][1]), 300)])
+    assert icp.thinned(10**6) is icp  # nothing to thin
+    start = SimilarityTransform(rotation=truth.rotation + 0.003, scale=truth.scale, translation=truth.translation + [2.0, -2.0])
+    assert corner_error(thin.polish(start), truth, b.shape) < 1.0

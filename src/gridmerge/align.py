@@ -55,7 +55,14 @@ Methods
     the walls of the maps as given (not despeckled), in the finer map's frame, when that
     polish moves b's corners 4 px at most and the pose there is still taken
     (``details["midway"]``): the smoothed cells' optimum and the raw walls' are each off
-    the truth their own way on a few dozen wall cells.
+    the truth their own way on a few dozen wall cells. Then, unless its walls agree on
+    98 % of the overlap already, it is moved to the pose near it (every turn within 2
+    degrees and shift within 20 px, at its scale and, when that is off the resolutions'
+    ratio, at the ratio, each polished by ICP) whose walls agree best, when they agree
+    by 2 points more there, on 30 wall cells of each map or more, and the pose is still
+    taken (``details["widened"]``): a search's pose
+    10-20 px off, held by walls that coincide with the wrong ones, lies beyond ICP's
+    reach.
 ``"sift"``
     The keypoint candidates alone, verified and refined the same way.
 ``"ransac"``
@@ -103,7 +110,7 @@ from .grid import OccupancyGrid
 from .io.jsonable import finite
 from .matching import knn, match_nn, match_smnn, match_snn
 from .parallel import opencv_threads_split
-from .refine import WallICP, prepare_fields, refine_direct
+from .refine import WallICP, prepare_fields, refine_direct, wall_search
 from .transforms import AffineTransform, SimilarityTransform, corner_error, pixel_to_metric
 from .correlate import correlation_hypotheses, match_rotation, rotation_candidates
 from .verify import Crossing, Slide, Verification, WallScorer, chance_wall_agreement, crossing, despeckle, slide, verify
@@ -661,6 +668,10 @@ class Method:
         ``True``: a taken pose the search judged by the walls (not one the keypoints
         settled alone) is moved halfway towards its polish by ICP on the maps' raw walls
         (:func:`_midway`; ``"hybrid"``). ``False``: the pose is the estimator's.
+    widen : bool
+        ``True``: a taken pose is moved, last, to the pose near it (within 2 degrees
+        and 20 px) whose walls agree best, when they agree clearly better there than at
+        the pose and it is still taken (:func:`_widened`; ``"hybrid"``).
     """
 
     name: str
@@ -672,6 +683,7 @@ class Method:
     order_free: bool = False
     coarse_look: bool = False
     midway: bool = False
+    widen: bool = False
 
 
 def register_method(method: Method) -> Method:
@@ -2262,7 +2274,8 @@ def _estimate_paper(a, b, fa, fb, opts: AlignOptions, rng) -> Estimate:
 #: Alignment methods by name (see :class:`Method` and :func:`register_method`).
 METHODS: dict[str, Method] = {}
 register_method(Method("hybrid", _estimate_hybrid, default_extractor, description="keypoint and wall-correlation hypotheses, verified and refined (default)",
-                       prepare=_look_twice, order_free=True, coarse_look=True, midway=True))
+                       prepare=_look_twice, order_free=True, coarse_look=True, midway=True,
+                       widen=True))
 register_method(Method("sift", _estimate_sift, default_extractor, description="keypoint hypotheses verified against the maps, refined"))
 register_method(Method("ransac", _estimate_ransac, default_extractor, description="SIFT, ratio test, RANSAC, least squares, refinement"))
 register_method(Method("paper", _estimate_paper, default_extractor, description="the paper's estimator: consensus of 3-point 5-parameter solutions"))
@@ -2465,6 +2478,18 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
                 est.transform = crop_to_full(pose, oa, ob)
                 v = checked
                 details["midway"] = {"polish_px": round(moved, 2)}
+    if success and spec.verified and spec.widen and opts.refine:
+        cut_pose = full_to_crop(est.transform, oa, ob)
+        trusted = opts.max_scale_disagreement is not None
+        wider = _widened(ca, cb, cut_pose, b.resolution / a.resolution if trusted else None)
+        if wider is not None:
+            pose, walls = wider
+            checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
+            if not declined(checked, pose) and not _few_walls_reason(checked, opts):
+                details["widened"] = {"moved_px": round(corner_error(pose, cut_pose, cb.shape), 2),
+                                      "walls": [round(w, 4) for w in walls]}
+                est.transform = crop_to_full(pose, oa, ob)
+                v = checked
     if crossing_note is not None:
         details["crossing"] = crossing_note
     if slide_note is not None:
@@ -2823,6 +2848,89 @@ def _midway(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform) -> tuple[Sim
     # Matrices of the form [[c, -s], [s, c]] are closed under averaging: the mean of two
     # similarities is the similarity that puts every point halfway between their images.
     return SimilarityTransform((found.params + polished.params) / 2.0), moved
+
+
+#: Distance (a's cells) within which two walls count as one when :func:`_widened`
+#: compares poses: finer than the decision's (``AlignOptions.wall_tolerance``), so that a
+#: pose a few pixels off its walls scores lower than one on them.
+_WIDEN_TOLERANCE = 2.0
+#: Walls' agreement (within :data:`_WIDEN_TOLERANCE`) at which :func:`_widened` leaves a
+#: pose as it is.
+_WIDEN_ENOUGH = 0.98
+#: How much better (walls' agreement within :data:`_WIDEN_TOLERANCE`) the pose
+#: :func:`_widened` finds must agree, and the wall cells of each map in the overlap
+#: (at the pose it starts from) it needs: on fewer walls, or for less, a pose that agrees
+#: better lies off the truth about as often as nearer it.
+_WIDEN_GAIN = 0.02
+_WIDEN_WALLS = 30
+#: Wall cells of each map that :func:`_widened`'s candidates are polished on at most (the
+#: winner is then polished on all of them).
+_WIDEN_POINTS = 3000
+#: A pose whose scale is this far (a fraction) or more from the maps' resolution ratio
+#: (and within the refinement's prior range of it) is searched at the ratio too, by
+#: :func:`_widened`.
+_WIDEN_RESCALE = 0.003
+
+
+def _widened(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, ratio: float | None = None
+             ) -> tuple[SimilarityTransform, tuple[float, float]] | None:
+    """``(pose, (before, after))``: the pose near ``t`` (b's cut -> a's cut, the
+    despeckled cuts of :func:`working_maps`) whose walls agree best, with the walls'
+    agreement (:func:`gridmerge.verify.verify` within :data:`_WIDEN_TOLERANCE`) at ``t``
+    and there; ``None`` when no pose near ``t`` agrees by :data:`_WIDEN_GAIN` better than
+    ``t`` itself, when ``t``'s walls agree on :data:`_WIDEN_ENOUGH` of the overlap already,
+    or when the overlap holds fewer than :data:`_WIDEN_WALLS` wall cells of either map.
+
+    The search and its polishes stop where the walls nearest the pose coincide; a pose
+    10-20 px or a degree off the truth, where the walls of a corridor or of a room's
+    other side coincide with the wrong ones, stays there. The candidates are
+    :func:`gridmerge.refine.wall_search`'s (every turn within 2 degrees and shift within
+    20 px, ranked by b's wall cells landing on a's walls), each polished by ICP on the
+    walls (:class:`gridmerge.refine.WallICP`, on at most :data:`_WIDEN_POINTS` wall cells
+    of each map; the winner then on all) at ``t``'s scale and, when ``ratio`` (b's
+    resolution over a's; ``None`` when the resolutions are not trusted) lies
+    :data:`_WIDEN_RESCALE` or more from ``t``'s scale (and within the refinement's prior
+    range of it), at the ratio too: ICP keeps a scale, and 1.5 % off is 15 px at the far
+    side of a map 1000 cells wide.
+
+    Measured on the poses the benchmark's stored runs took (simulated seeds 51-121, HM3D
+    39-66; docs/benchmarks.md, sixty-second session): of the 111 taken 2 px or more off
+    the truth, it put 14 within 2 px and 4 of the 16 wrong ones within 10 px, and made one
+    right one wrong (3.8 px off, then 11 px, on 53 wall cells); of 650 others, none was
+    moved more than 2 px off. Without the floors (:data:`_WIDEN_GAIN`,
+    :data:`_WIDEN_WALLS`) it put 5 more within 2 px, but moved 6 of those within 2 px
+    farther and made 2 more right poses wrong."""
+    found = SimilarityTransform(np.asarray(t.params, dtype=float))
+    # Not for a pose whose walls agree nearly everywhere (most poses the keypoints settle:
+    # a 1585 x 1585 pair pays nothing).
+    at = verify(a, b, found, tolerance=_WIDEN_TOLERANCE)
+    before = at.wall_agreement
+    if not before < _WIDEN_ENOUGH or min(at.walls_a, at.walls_b) < _WIDEN_WALLS:
+        return None
+    scales = (1.0,)
+    if ratio is not None:
+        off = ratio / found.scale
+        if _WIDEN_RESCALE <= abs(off - 1.0) <= _SCALE_PRIOR_RANGE - 1.0:
+            scales = (1.0, off)
+    starts = wall_search(a, b, found, tolerance=_WIDEN_TOLERANCE, scales=scales)
+    if not starts:
+        return None
+    icp = WallICP(a, b)
+    quick = icp.thinned(_WIDEN_POINTS)
+    best, best_walls = None, before
+    for start in starts:
+        pose = quick.polish(start)
+        walls = verify(a, b, pose, tolerance=_WIDEN_TOLERANCE).wall_agreement
+        if walls > best_walls:
+            best, best_walls = pose, walls
+    if best is None or best_walls < before + _WIDEN_GAIN:
+        return None
+    if quick is not icp:  # the winner polished on every wall cell, if that agrees no worse
+        pose = icp.polish(best)
+        walls = verify(a, b, pose, tolerance=_WIDEN_TOLERANCE).wall_agreement
+        if walls >= best_walls:
+            best, best_walls = pose, walls
+    return best, (before, best_walls)
 
 
 def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True):

@@ -44,7 +44,7 @@ from .grid import OccupancyGrid
 from .transforms import SimilarityTransform
 from .verify import _strided_cells
 
-__all__ = ["refine_direct", "RefineReport", "prepare_fields", "WallICP"]
+__all__ = ["refine_direct", "RefineReport", "prepare_fields", "WallICP", "wall_search"]
 
 
 @dataclass(frozen=True)
@@ -774,6 +774,23 @@ class WallICP:
         other._maps = self._maps[::-1]
         return other
 
+    def thinned(self, max_points: int) -> WallICP:
+        """The same ICP on at most ``max_points`` wall cells of each map (an even spread of
+        its own), sharing the nearest-wall tables: cheaper polishes of many candidates."""
+        other = copy.copy(self)
+        maps = []
+        for entry in self._maps:
+            if entry is None or len(entry[1]) <= max_points:
+                maps.append(entry)
+                continue
+            nearest, cells, free, facing = entry
+            keep = _evenly(len(cells), int(max_points))
+            maps.append((nearest, cells[keep], free, None if facing is None else facing[keep]))
+        if all(x is y for x, y in zip(maps, self._maps)):
+            return self
+        other._maps = maps
+        return other
+
     def _pairs(self, which: int, points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
         """``(keep, nearest)``: which ``points`` (pixels of map ``which``) lie within
         ``radius`` of one of its walls, and that wall cell."""
@@ -982,6 +999,122 @@ def _chamfer_norms() -> np.ndarray:
             cost[y, x] = best
     cost.flags.writeable = False  # shared by every caller
     return cost
+
+
+def wall_search(a: OccupancyGrid, b: OccupancyGrid, t: SimilarityTransform, *, degrees: float = 2.0,
+                step_deg: float = 0.25, reach: int = 20, tolerance: float = 2.0, max_points: int = 1500,
+                keep: int = 6, scales=(1.0,)) -> list[SimilarityTransform]:
+    """Poses near ``t`` (b pixels -> a pixels) where b's walls land on a's: the start of
+    :meth:`WallICP.polish` when ``t`` lies beyond its reach of the truth.
+
+    ICP pairs each wall cell with the nearest one of the other map, a few pixels away at
+    most; from a pose 10-20 px or a degree off, on walls that run in two directions, it
+    stays where it started. This search turns b's wall cells that ``t`` puts on a's known
+    cells (an evenly spread ``max_points`` of them) about their centroid by every angle
+    within ``degrees`` (steps of ``step_deg``) and, for each, shifts them by every whole
+    pixel within ``reach`` in x and y, counting the cells that land within ``tolerance``
+    of one of a's walls. Nothing is drawn at random.
+
+    Parameters
+    ----------
+    a, b : OccupancyGrid
+    t : SimilarityTransform
+        The pose to search around (b pixels -> a pixels); its scale is kept.
+    degrees, step_deg : float
+        Largest turn either way, and the step between turns.
+    reach : int
+        Largest shift along each axis, a's pixels.
+    tolerance : float
+        Distance (a's pixels) within which a moved wall cell counts as on a wall.
+    max_points : int
+        b's wall cells moved at most.
+    keep : int
+        Poses returned at most.
+    scales : sequence of float
+        Factors of ``t``'s scale to search at (about the same centroid), each with every
+        turn and shift.
+
+    Returns
+    -------
+    list of SimilarityTransform
+        Up to ``keep`` poses, the most wall cells landed first (the three best shifts of
+        each turn; a pose within 0.6 degrees and 3 px of a better one is left out).
+        Empty when fewer than 10 of b's wall cells land on a's known cells.
+
+    Examples
+    --------
+    >>> from gridmerge import samples
+    >>> from gridmerge.transforms import SimilarityTransform, corner_error
+    >>> a, b, truth = samples.robot_pair(0, scale=1.0, rotation_deg=40)
+    >>> start = SimilarityTransform(rotation=0.02, translation=(12, -9)) @ SimilarityTransform(truth)
+    >>> best = wall_search(a, b, start)[0]
+    >>> corner_error(best, truth, b.shape) < 3.0
+    True
+    """
+    m = np.asarray(t.params, dtype=float)
+    h, w = a.shape
+    pts = _strided_cells(b.occupied(), 1 << 40)
+    if len(pts) == 0 or not a.occupied().any():
+        return []
+    q = np.rint(pts @ m[:2, :2].T + m[:2, 2]).astype(np.int64)
+    on = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
+    on[on] = a.known[q[on, 1], q[on, 0]]
+    pts = pts[on]
+    if len(pts) < 10:
+        return []
+    pts = pts[_evenly(len(pts), max_points)] if len(pts) > max_points else pts
+    moved = pts @ m[:2, :2].T + m[:2, 2]
+    centre = moved.mean(axis=0)
+    # The box of a that the turned and shifted cells can reach (and the walls within
+    # tolerance of it): a's cells within tolerance of a wall there, padded so that every
+    # cell has a place to land, as one flat byte array looked up by index.
+    stretch = max(abs(float(f) - 1.0) for f in scales)
+    swing = float(np.abs(moved - centre).max()) * (math.radians(abs(degrees)) + stretch) * 1.5 + 2.0
+    grow = math.ceil(reach + swing + tolerance) + 1
+    x0, y0 = (np.floor(moved.min(axis=0)).astype(int) - grow).clip(0)
+    x1 = min(w, int(np.ceil(moved[:, 0].max())) + grow + 1)
+    y1 = min(h, int(np.ceil(moved[:, 1].max())) + grow + 1)
+    walls = a.occupied()[y0:y1, x0:x1]
+    near = cv2.distanceTransform((~walls).astype(np.uint8), cv2.DIST_L2, 3) <= tolerance
+    pad = int(reach) + 2
+    hb, wb = near.shape
+    wp = wb + 2 * pad
+    flat = np.zeros((hb + 2 * pad, wp), np.uint8)
+    flat[pad : pad + hb, pad : pad + wb] = near
+    flat = flat.ravel()
+    moved -= (x0, y0)
+    centre = centre - (x0, y0)
+    h, w = hb, wb
+    d = np.arange(-int(reach), int(reach) + 1)
+    offsets = (d[:, None] * wp + d[None, :]).ravel()  # row-major: (dy, dx)
+    found = []
+    turns = np.arange(-degrees, degrees + step_deg / 2, step_deg)
+    for factor, deg in [(float(f), float(e)) for f in scales for e in turns]:
+        rot = SimilarityTransform(rotation=math.radians(deg), scale=factor).params[:2, :2]
+        p = np.rint((moved - centre) @ rot.T + centre).astype(np.int64)
+        inside = (p[:, 0] >= -2) & (p[:, 0] < w + 2) & (p[:, 1] >= -2) & (p[:, 1] < h + 2)
+        base = (p[inside, 1] + pad) * wp + p[inside, 0] + pad
+        counts = flat.take(base[None, :] + offsets[:, None]).sum(axis=1, dtype=np.int64)
+        for k in np.argsort(-counts, kind="stable")[:3]:
+            dy, dx = divmod(int(k), len(d))
+            found.append((-int(counts[k]), factor, deg, int(d[dx]), int(d[dy])))
+    found.sort()
+    picked = []
+    for _, factor, deg, dx, dy in found:
+        if any(f == factor and abs(deg - e) < 0.6 and abs(dx - x) <= 3 and abs(dy - y) <= 3 for f, e, x, y in picked):
+            continue
+        picked.append((factor, deg, dx, dy))
+        if len(picked) >= keep:
+            break
+    out = []
+    for factor, deg, dx, dy in picked:
+        turn = SimilarityTransform(rotation=math.radians(deg), scale=factor).params
+        step = np.eye(3)
+        step[:2, :2] = turn[:2, :2]
+        step[:2, 2] = centre + (dx, dy) - turn[:2, :2] @ centre
+        step[:2, 2] += (x0, y0) - step[:2, :2] @ (x0, y0)  # back from the box to a's pixels
+        out.append(SimilarityTransform(step @ m))
+    return out
 
 
 def _nearest_walls(walls: np.ndarray, reach: int, rows: int | None = None) -> np.ndarray:
