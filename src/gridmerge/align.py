@@ -59,8 +59,8 @@ Methods
     98 % of the overlap already, it is moved to the pose near it (every turn within 2
     degrees and shift within 20 px, at its scale and, when that is off the resolutions'
     ratio, at the ratio, each polished by ICP) whose walls agree best, when they agree
-    by 2 points more there, on 30 wall cells of each map or more, and the pose is still
-    taken (``details["widened"]``): a search's pose
+    there by 2 points more and on 75 % at least, the overlap holds 30 wall cells of each
+    map or more, and the pose is still taken (``details["widened"]``): a search's pose
     10-20 px off, held by walls that coincide with the wrong ones, lies beyond ICP's
     reach.
 ``"sift"``
@@ -2883,8 +2883,9 @@ def _widened(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, ratio: floa
     despeckled cuts of :func:`working_maps`) whose walls agree best, with the walls'
     agreement (:func:`gridmerge.verify.verify` within :data:`_WIDEN_TOLERANCE`) at ``t``
     and there; ``None`` when no pose near ``t`` agrees by :data:`_WIDEN_GAIN` better than
-    ``t`` itself and on :data:`_WIDEN_AGREEMENT` of the overlap at least, when ``t``'s walls agree on :data:`_WIDEN_ENOUGH` of the overlap already,
-    or when the overlap holds fewer than :data:`_WIDEN_WALLS` wall cells of either map.
+    ``t`` itself and on :data:`_WIDEN_AGREEMENT` of the overlap at least, when ``t``'s
+    walls agree on :data:`_WIDEN_ENOUGH` of the overlap already, or when the overlap holds
+    fewer than :data:`_WIDEN_WALLS` wall cells of either map.
 
     The search and its polishes stop where the walls nearest the pose coincide; a pose
     10-20 px or a degree off the truth, where the walls of a corridor or of a room's
@@ -2903,11 +2904,12 @@ def _widened(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform, ratio: floa
     the truth, it put 14 within 2 px and 4 of the 16 wrong ones within 10 px, and made one
     right one wrong (3.8 px off, then 11 px, on 53 wall cells); of 650 others, none was
     moved more than 2 px off. Without the floors (:data:`_WIDEN_GAIN`,
-    :data:`_WIDEN_WALLS`) it put 5 more within 2 px, but moved 6 of those within 2 px
-    farther and made 2 more right poses wrong."""
+    :data:`_WIDEN_WALLS`) it put 5 more within 2 px, but moved 6 of the 650 past 2 px and
+    made 2 more right poses wrong. :data:`_WIDEN_AGREEMENT` keeps it off the Halmstad
+    pairs, which bend."""
     found = SimilarityTransform(np.asarray(t.params, dtype=float))
     # Not for a pose whose walls agree nearly everywhere (most poses the keypoints settle:
-    # a 1585 x 1585 pair pays nothing).
+    # a 1585 x 1585 speed pair pays this one check, about 8 ms).
     at = verify(a, b, found, tolerance=_WIDEN_TOLERANCE)
     before = at.wall_agreement
     if not before < _WIDEN_ENOUGH or min(at.walls_a, at.walls_b) < _WIDEN_WALLS:
