@@ -2469,12 +2469,19 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
             message = "" if est.success else (est.message or "declined by the method's own rule")
     success = est.transform is not None and not message
     details = dict(est.details)
+
+    def still_taken(pose: AffineTransform) -> Verification | None:
+        # A taken pose moved after the decision (b's cut -> a's cut): its verification
+        # when the decline rules and the few-walls rule would take it there too.
+        checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
+        return None if declined(checked, pose) or _few_walls_reason(checked, opts) else checked
+
     if success and spec.verified and spec.midway and opts.refine and _midway_applies(est, a, b, opts):
         halfway = _midway(a, b, in_cut)
         if halfway is not None:
             pose, moved = halfway
-            checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
-            if not declined(checked, pose) and not _few_walls_reason(checked, opts):
+            checked = still_taken(pose)
+            if checked is not None:
                 est.transform = crop_to_full(pose, oa, ob)
                 v = checked
                 details["midway"] = {"polish_px": round(moved, 2)}
@@ -2484,8 +2491,8 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
         wider = _widened(ca, cb, cut_pose, b.resolution / a.resolution if trusted else None)
         if wider is not None:
             pose, walls = wider
-            checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
-            if not declined(checked, pose) and not _few_walls_reason(checked, opts):
+            checked = still_taken(pose)
+            if checked is not None:
                 details["widened"] = {"moved_px": round(corner_error(pose, cut_pose, cb.shape), 2),
                                       "walls": [round(w, 4) for w in walls]}
                 est.transform = crop_to_full(pose, oa, ob)

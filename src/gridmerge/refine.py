@@ -777,7 +777,6 @@ class WallICP:
     def thinned(self, max_points: int) -> WallICP:
         """The same ICP on at most ``max_points`` wall cells of each map (an even spread of
         its own), sharing the nearest-wall tables: cheaper polishes of many candidates."""
-        other = copy.copy(self)
         maps = []
         for entry in self._maps:
             if entry is None or len(entry[1]) <= max_points:
@@ -788,6 +787,7 @@ class WallICP:
             maps.append((nearest, cells[keep], free, None if facing is None else facing[keep]))
         if all(x is y for x, y in zip(maps, self._maps)):
             return self
+        other = copy.copy(self)
         other._maps = maps
         return other
 
@@ -1053,17 +1053,18 @@ def wall_search(a: OccupancyGrid, b: OccupancyGrid, t: SimilarityTransform, *, d
     """
     m = np.asarray(t.params, dtype=float)
     h, w = a.shape
+    a_walls = a.occupied()
     pts = _strided_cells(b.occupied(), 1 << 40)
-    if len(pts) == 0 or not a.occupied().any():
+    if len(pts) == 0 or not a_walls.any():
         return []
-    q = np.rint(pts @ m[:2, :2].T + m[:2, 2]).astype(np.int64)
+    moved = pts @ m[:2, :2].T + m[:2, 2]
+    q = np.rint(moved).astype(np.int64)
     on = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
     on[on] = a.known[q[on, 1], q[on, 0]]
-    pts = pts[on]
-    if len(pts) < 10:
+    moved = moved[on]
+    if len(moved) < 10:
         return []
-    pts = pts[_evenly(len(pts), max_points)] if len(pts) > max_points else pts
-    moved = pts @ m[:2, :2].T + m[:2, 2]
+    moved = moved[_evenly(len(moved), max_points)] if len(moved) > max_points else moved
     centre = moved.mean(axis=0)
     # The box of a that the turned and shifted cells can reach (and the walls within
     # tolerance of it): a's cells within tolerance of a wall there, padded so that every
@@ -1074,8 +1075,7 @@ def wall_search(a: OccupancyGrid, b: OccupancyGrid, t: SimilarityTransform, *, d
     x0, y0 = (np.floor(moved.min(axis=0)).astype(int) - grow).clip(0)
     x1 = min(w, int(np.ceil(moved[:, 0].max())) + grow + 1)
     y1 = min(h, int(np.ceil(moved[:, 1].max())) + grow + 1)
-    walls = a.occupied()[y0:y1, x0:x1]
-    near = cv2.distanceTransform((~walls).astype(np.uint8), cv2.DIST_L2, 3) <= tolerance
+    near = cv2.distanceTransform((~a_walls[y0:y1, x0:x1]).astype(np.uint8), cv2.DIST_L2, 3) <= tolerance
     pad = int(reach) + 2
     hb, wb = near.shape
     wp = wb + 2 * pad
