@@ -2298,6 +2298,7 @@ def test_the_halfway_pose_keeps_the_decision_and_skips_keypoint_settled_poses(mo
         return out
 
     monkeypatch.setattr(align_module, "_midway", spy)
+    monkeypatch.setattr(align_module, "_chamfered", lambda *args: None)  # the halfway pose, last
     r = align(a, b, rng=0, options=searched)
     assert r.success and len(seen) == 1 and seen[0] is not None
     assert r.details["midway"]["polish_px"] == pytest.approx(seen[0][1], abs=0.01)
@@ -2388,9 +2389,65 @@ def test_align_moves_a_taken_pose_to_where_its_walls_agree_and_keeps_the_decisio
     # A widened pose the rules decline is not taken: the pose stays where it was.
     away = SimilarityTransform(translation=[500.0, 500.0])
     monkeypatch.setattr(align_module, "_widened", lambda *args: (away, (0.4, 0.9)))
+    monkeypatch.setattr(align_module, "_chamfered", lambda *args: None)  # the pose as the widening left it
     kept = align(a, b, rng=0, options=searched)
     assert kept.success and "widened" not in kept.details
     assert corner_error(kept.transform, off, b.shape) < 1e-6
     for method in ("sift", "paper"):
         other = align(a, b, method=method, rng=0, options=searched)
         assert "widened" not in other.details
+
+
+def test_align_moves_a_pose_the_walls_judged_halfway_to_its_chamfer_polish(monkeypatch):
+    # A taken pose 1.5 px off (the halfway pose, made so) is moved, last, halfway towards
+    # its polish on the walls' distance fields, which lies on the truth
+    # (details["chamfer"]; the verification reported is the new pose's); a pose the
+    # decline rules would refuse there is not taken; a pose the keypoints settled, and
+    # the other methods' poses, are not moved.
+    a, b, truth = samples.robot_pair(0)
+    truth = SimilarityTransform(truth)
+    searched = AlignOptions(keypoints_first=0)
+    ca, oa, cb, ob = align_module.working_maps(a, b)
+    off = SimilarityTransform(rotation=truth.rotation + 0.002, scale=truth.scale, translation=truth.translation + [1.0, -1.0])
+    start = corner_error(off, truth, b.shape)
+    assert start > 1.2
+    monkeypatch.setattr(align_module, "_midway", lambda *args: (align_module.full_to_crop(off, oa, ob), 1.0))
+    monkeypatch.setattr(align_module, "_widened", lambda *args: None)
+    r = align(a, b, rng=0, options=searched)
+    assert r.success and "midway" in r.details and "chamfer" in r.details
+    assert corner_error(r.transform, truth, b.shape) < 0.5 * start + 0.15  # halfway to the truth
+    cut = align_module.full_to_crop  # polish_px: at the corners of b's cut
+    assert r.details["chamfer"]["polish_px"] == pytest.approx(
+        2.0 * corner_error(cut(r.transform, oa, ob), cut(off, oa, ob), cb.shape), abs=0.01)
+    assert r.verification.wall_agreement == pytest.approx(
+        verify_module.verify(ca, cb, align_module.full_to_crop(r.transform, oa, ob), tolerance=searched.wall_tolerance).wall_agreement)
+    # A moved pose the rules decline is not taken: the pose stays where it was.
+    away = SimilarityTransform(translation=[500.0, 500.0])
+    monkeypatch.setattr(align_module, "_chamfered", lambda *args: (away, 1.0))
+    kept = align(a, b, rng=0, options=searched)
+    assert kept.success and "chamfer" not in kept.details
+    assert corner_error(kept.transform, off, b.shape) < 1e-6
+    settled = align(a, b, rng=0)  # the keypoints settle this pair by default
+    assert settled.details["walls"].startswith("skipped") and "chamfer" not in settled.details
+    for method in ("sift", "paper"):
+        other = align(a, b, method=method, rng=0, options=searched)
+        assert "chamfer" not in other.details
+
+
+def test_the_chamfer_step_goes_halfway_and_not_far(monkeypatch):
+    from gridmerge.align import _chamfered, full_to_crop, working_maps
+
+    a, b, truth = samples.robot_pair(0)
+    truth = SimilarityTransform(truth)
+    ca, oa, cb, ob = working_maps(a, b)
+    truth_cut = full_to_crop(truth, oa, ob)
+    off = SimilarityTransform(translation=[1.5, 0.0]) @ truth_cut
+    pose, moved = _chamfered(ca, cb, off)
+    assert 1.0 < moved < 2.0
+    assert corner_error(pose, off, cb.shape) == pytest.approx(moved / 2.0, rel=1e-3)
+    assert corner_error(pose, truth_cut, cb.shape) < 1.0
+    far = SimilarityTransform(translation=[6.0, 0.0]) @ off
+    monkeypatch.setattr(align_module, "chamfer_polish", lambda a, b, t: far)
+    assert _chamfered(ca, cb, off) is None  # 6 px: farther than _CHAMFER_REACH
+    monkeypatch.setattr(align_module, "chamfer_polish", lambda a, b, t: t)
+    assert _chamfered(ca, cb, off) is None  # not moved

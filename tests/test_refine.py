@@ -2,12 +2,14 @@
 
 import math
 
+import cv2
+
 import numpy as np
 import pytest
 
 from gridmerge import OccupancyGrid, samples
 from gridmerge import refine as refine_mod
-from gridmerge.refine import WallICP, wall_search, _a_field, _corner_shift, _blurred_free, _facing, _plane_step, _same_face, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
+from gridmerge.refine import WallICP, chamfer_polish, wall_search, _a_field, _corner_shift, _blurred_free, _facing, _plane_step, _same_face, _b_points, _block_fields, _planes, _smoothed, _whole, prepare_fields, refine_direct
 from gridmerge.transforms import SimilarityTransform, corner_error
 
 
@@ -553,3 +555,69 @@ def test_a_thinned_wall_icp_shares_the_tables_and_uses_fewer_cells(robots):
     assert icp.thinned(10**6) is icp  # nothing to thin
     start = SimilarityTransform(rotation=truth.rotation + 0.003, scale=truth.scale, translation=truth.translation + [2.0, -2.0])
     assert corner_error(thin.polish(start), truth, b.shape) < 1.0
+
+
+@pytest.mark.parametrize("off", [(1.5, -1.0, 0.0), (0.0, 0.0, 0.004), (-2.0, 1.5, -0.003)])
+def test_chamfer_polish_puts_a_pose_a_few_pixels_off_onto_the_walls(robots, off):
+    # 1-4 px off at b's corners: on the truth to a fraction of a cell, at the start's scale.
+    a, b, truth = robots
+    dx, dy, turn = off
+    start = SimilarityTransform(rotation=truth.rotation + turn, scale=truth.scale, translation=truth.translation + [dx, dy])
+    assert corner_error(start, truth, b.shape) > 1.0
+    polished = chamfer_polish(a, b, start)
+    assert corner_error(polished, truth, b.shape) < 0.3
+    assert polished.scale == pytest.approx(start.scale, rel=1e-12)
+    assert corner_error(chamfer_polish(a, b, truth), truth, b.shape) < 0.3  # the truth stays
+
+
+def test_chamfer_polish_lowers_the_walls_distances(robots):
+    # The cost it descends: b's wall cells' distance to a's nearest wall falls.
+    a, b, truth = robots
+    start = SimilarityTransform(rotation=truth.rotation + 0.003, scale=truth.scale, translation=truth.translation + [1.0, 2.0])
+    field = cv2.distanceTransform((~a.occupied()).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    cells = refine_mod._strided_cells(b.occupied(), 10**6)
+
+    def mean_distance(t):
+        q = np.rint(cells @ t.params[:2, :2].T + t.params[:2, 2]).astype(int)
+        inside = (q[:, 0] >= 0) & (q[:, 0] < a.width) & (q[:, 1] >= 0) & (q[:, 1] < a.height)
+        q = q[inside]
+        on = a.known[q[:, 1], q[:, 0]]
+        return float(np.minimum(field[q[on, 1], q[on, 0]], 3.0).mean())
+
+    assert mean_distance(chamfer_polish(a, b, start)) < mean_distance(start) - 0.3
+
+
+def test_chamfer_polish_without_walls_or_overlap_keeps_the_pose(robots):
+    a, b, truth = robots
+    empty = OccupancyGrid(np.where(b.occupied(), 0.0, b.data))
+    assert chamfer_polish(a, empty, truth) is truth
+    away = SimilarityTransform(translation=(5000.0, 5000.0)) @ truth  # b lands off a
+    assert chamfer_polish(a, b, away) is away
+
+
+def test_the_wall_field_on_a_box_is_the_whole_maps_distance_inside_its_margin(robots):
+    a, _, _ = robots
+    walls = a.occupied()
+    whole = cv2.distanceTransform((~walls).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    points = np.array([[40.0, 50.0], [120.5, 90.25]])
+    field, gx, gy, corner = refine_mod._wall_field(walls, points, margin=11.0)
+    assert corner.tolist() == [29.0, 39.0]
+    assert field.shape == gx.shape == gy.shape == (103 - 39, 133 - 29)  # ceil(max) + margin + 1
+    # Within the margin's reach of the points, the box's distances are the whole map's
+    # (where the nearest wall lies within the margin).
+    sub = whole[39:39 + field.shape[0], 29:29 + field.shape[1]]
+    near = sub <= 5.0
+    inner = np.zeros_like(near)
+    inner[6:-6, 6:-6] = True
+    assert np.allclose(field[near & inner], sub[near & inner], atol=1e-4)
+    assert refine_mod._wall_field(np.zeros_like(walls), points, margin=11.0) is None
+
+
+def test_bilinear_sampling_is_exact_on_a_plane_and_flags_the_outside():
+    y, x = np.mgrid[0:20, 0:30].astype(float)
+    plane = 2.0 * x - 3.0 * y + 1.0
+    pts = np.array([[3.25, 4.5], [28.9, 18.1], [0.0, 0.0], [29.5, 3.0], [-0.5, 2.0]])
+    got = refine_mod._bilinear(plane, pts, outside=-7.0)
+    assert np.allclose(got[:3], 2.0 * pts[:3, 0] - 3.0 * pts[:3, 1] + 1.0)
+    assert got[3] == -7.0 and got[4] == -7.0
+    assert refine_mod._bilinear(plane, np.zeros((0, 2)), outside=1.0).shape == (0,)
