@@ -2421,6 +2421,11 @@ def test_align_moves_a_pose_the_walls_judged_halfway_to_its_chamfer_polish(monke
         2.0 * corner_error(cut(r.transform, oa, ob), cut(off, oa, ob), cb.shape), abs=0.01)
     assert r.verification.wall_agreement == pytest.approx(
         verify_module.verify(ca, cb, align_module.full_to_crop(r.transform, oa, ob), tolerance=searched.wall_tolerance).wall_agreement)
+    # Not for a pose whose walls agree on less than _CHAMFER_AGREEMENT (maps that bend).
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(align_module, "_CHAMFER_AGREEMENT", r.verification.wall_agreement + 0.01)
+        below = align(a, b, rng=0, options=searched)
+        assert below.success and "chamfer" not in below.details
     # A moved pose the rules decline is not taken: the pose stays where it was.
     away = SimilarityTransform(translation=[500.0, 500.0])
     monkeypatch.setattr(align_module, "_chamfered", lambda *args: (away, 1.0))
