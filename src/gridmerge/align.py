@@ -2476,11 +2476,16 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
     success = est.transform is not None and not message
     details = dict(est.details)
 
-    def still_taken(pose: AffineTransform) -> Verification | None:
-        # A taken pose moved after the decision (b's cut -> a's cut): its verification
-        # when the decline rules and the few-walls rule would take it there too.
+    def move_taken(pose: AffineTransform, key: str, note: dict) -> None:
+        # A taken pose moved after the decision (b's cut -> a's cut), when the decline
+        # rules and the few-walls rule would take it there too: the pose, its
+        # verification and details[key] = note.
+        nonlocal v
         checked = verify(ca, cb, pose, tolerance=opts.wall_tolerance)
-        return None if declined(checked, pose) or _few_walls_reason(checked, opts) else checked
+        if not declined(checked, pose) and not _few_walls_reason(checked, opts):
+            est.transform = crop_to_full(pose, oa, ob)
+            v = checked
+            details[key] = note
 
     # A pose a search of the walls judged, at a scale ICP may keep: the polishes' poses.
     walls_judged = success and spec.verified and opts.refine and _midway_applies(est, a, b, opts)
@@ -2488,32 +2493,20 @@ def _align(a: OccupancyGrid, b: OccupancyGrid, method: str, opts: AlignOptions, 
         halfway = _midway(a, b, in_cut)
         if halfway is not None:
             pose, moved = halfway
-            checked = still_taken(pose)
-            if checked is not None:
-                est.transform = crop_to_full(pose, oa, ob)
-                v = checked
-                details["midway"] = {"polish_px": round(moved, 2)}
+            move_taken(pose, "midway", {"polish_px": round(moved, 2)})
     if success and spec.verified and spec.widen and opts.refine:
         cut_pose = full_to_crop(est.transform, oa, ob)
         trusted = opts.max_scale_disagreement is not None
         wider = _widened(ca, cb, cut_pose, b.resolution / a.resolution if trusted else None)
         if wider is not None:
             pose, walls = wider
-            checked = still_taken(pose)
-            if checked is not None:
-                details["widened"] = {"moved_px": round(corner_error(pose, cut_pose, cb.shape), 2),
-                                      "walls": [round(w, 4) for w in walls]}
-                est.transform = crop_to_full(pose, oa, ob)
-                v = checked
+            move_taken(pose, "widened", {"moved_px": round(corner_error(pose, cut_pose, cb.shape), 2),
+                                         "walls": [round(w, 4) for w in walls]})
     if walls_judged and spec.chamfer and v.wall_agreement >= _CHAMFER_AGREEMENT:
         polished = _chamfered(ca, cb, full_to_crop(est.transform, oa, ob))
         if polished is not None:
             pose, moved = polished
-            checked = still_taken(pose)
-            if checked is not None:
-                details["chamfer"] = {"polish_px": round(moved, 2)}
-                est.transform = crop_to_full(pose, oa, ob)
-                v = checked
+            move_taken(pose, "chamfer", {"polish_px": round(moved, 2)})
     if crossing_note is not None:
         details["crossing"] = crossing_note
     if slide_note is not None:
@@ -2866,8 +2859,16 @@ def _midway(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform) -> tuple[Sim
         polished = WallICP(rb, ra).polish(found.inverse).inverse
     else:
         polished = WallICP(ra, rb).polish(found)
-    moved = corner_error(polished, found, rb.shape)
-    if moved == 0.0 or moved > _MIDWAY_REACH:
+    return _halfway(found, polished, rb.shape, _MIDWAY_REACH)
+
+
+def _halfway(found: SimilarityTransform, polished: SimilarityTransform, shape, reach: float
+             ) -> tuple[SimilarityTransform, float] | None:
+    """``(pose, moved)``: the pose halfway between ``found`` and ``polished`` (b's pixels
+    -> a's), with ``moved`` how far ``polished`` puts the corners of b (``shape``) from
+    ``found``; ``None`` when it does not move them or moves them farther than ``reach``."""
+    moved = corner_error(polished, found, shape)
+    if moved == 0.0 or moved > reach:
         return None
     # Matrices of the form [[c, -s], [s, c]] are closed under averaging: the mean of two
     # similarities is the similarity that puts every point halfway between their images.
@@ -2991,12 +2992,7 @@ def _chamfered(a: OccupancyGrid, b: OccupancyGrid, t: AffineTransform) -> tuple[
     and 19 out of it (the homes lost 5 net) and made 2 right poses wrong; halfway put 12
     more within 2 px and 4 out of it, made 2 wrong ones right and 1 right one wrong."""
     found = SimilarityTransform(np.asarray(t.params, dtype=float))
-    polished = chamfer_polish(a, b, found)
-    moved = corner_error(polished, found, b.shape)
-    if not 0.0 < moved <= _CHAMFER_REACH:
-        return None
-    # As in _midway: the mean of two similarities puts every point halfway between its images.
-    return SimilarityTransform((found.params + polished.params) / 2.0), moved
+    return _halfway(found, chamfer_polish(a, b, found), b.shape, _CHAMFER_REACH)
 
 
 def working_maps(a: OccupancyGrid, b: OccupancyGrid, *, despeckled: bool = True):

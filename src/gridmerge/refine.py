@@ -238,6 +238,16 @@ def _box_of(points: np.ndarray, grow: float, shape):
     return (x0, y0, max(x0, x1), max(y0, y1))
 
 
+def _on_known(grid: OccupancyGrid, xy: np.ndarray) -> np.ndarray:
+    """Which of the ``(N, 2)`` float points ``(x, y)`` lie on ``grid``'s known cells (the
+    nearest cell)."""
+    p = np.rint(xy).astype(np.int64)
+    h, w = grid.shape
+    on = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
+    on[on] = grid.known[p[on, 1], p[on, 0]]
+    return on
+
+
 def _gaussian_taps(sigma: float) -> np.ndarray:
     """The kernel ``cv2.GaussianBlur`` uses on float images for ``sigma``."""
     ksize = int(round(sigma * 4 * 2 + 1)) | 1
@@ -1009,7 +1019,9 @@ CHAMFER_HUBER = 0.5
 
 def _bilinear(field: np.ndarray, xy: np.ndarray, outside: float) -> np.ndarray:
     """``field`` at the ``(N, 2)`` float points ``(x, y)``, bilinear; ``outside`` where a
-    point's four cells are not all in the field."""
+    point's four cells are not all in the field. Exact fractions, unlike :func:`_sample`
+    (``cv2.remap`` rounds them to 1/32 of a cell): a Gauss-Newton polish to a fraction of a
+    cell compares costs that differ by less."""
     out = np.full(len(xy), float(outside))
     if not len(xy):
         return out
@@ -1030,12 +1042,7 @@ def _wall_field(walls: np.ndarray, points: np.ndarray, margin: float):
     ``(x, y)``) reach grown by ``margin``; ``corner`` is the box's ``(x, y)`` in the map.
     Walls beyond the box are not seen: the box's margin must exceed the distances that
     count."""
-    h, w = walls.shape
-    grow = math.ceil(margin)
-    x0 = max(0, int(np.floor(points[:, 0].min())) - grow)
-    y0 = max(0, int(np.floor(points[:, 1].min())) - grow)
-    x1 = min(w, int(np.ceil(points[:, 0].max())) + grow + 1)
-    y1 = min(h, int(np.ceil(points[:, 1].max())) + grow + 1)
+    x0, y0, x1, y1 = _box_of(points, math.ceil(margin), walls.shape)
     box = walls[y0:y1, x0:x1]
     if not box.any():
         return None
@@ -1101,23 +1108,17 @@ def chamfer_polish(a: OccupancyGrid, b: OccupancyGrid, t: SimilarityTransform, *
     if len(pa) < min_cells or len(pb) < min_cells:
         return t
 
-    def on_known(grid: OccupancyGrid, xy: np.ndarray) -> np.ndarray:
-        p = np.rint(xy).astype(np.intp)
-        h, w = grid.shape
-        inside = (p[:, 0] >= 0) & (p[:, 0] < w) & (p[:, 1] >= 0) & (p[:, 1] < h)
-        out = np.zeros(len(xy), bool)
-        out[inside] = grid.known[p[inside, 1], p[inside, 0]]
-        return out
-
     inv = np.linalg.inv(m)
-    pb = pb[on_known(a, pb @ m[:2, :2].T + m[:2, 2])]  # b's walls on a's known cells
-    pa = pa[on_known(b, pa @ inv[:2, :2].T + inv[:2, 2])]  # a's walls on b's known cells
+    sent_b = pb @ m[:2, :2].T + m[:2, 2]
+    sent_a = pa @ inv[:2, :2].T + inv[:2, 2]
+    on_b, on_a = _on_known(a, sent_b), _on_known(b, sent_a)
+    pb, pa = pb[on_b], pa[on_a]  # b's walls on a's known cells, a's walls on b's
     if len(pa) < min_cells or len(pb) < min_cells:
         return t
     # The pose moves a few cells at most: fields on the boxes the cells reach, grown.
     margin = reach + 8.0
-    fa = _wall_field(walls_a, pb @ m[:2, :2].T + m[:2, 2], margin)
-    fb = _wall_field(walls_b, pa @ inv[:2, :2].T + inv[:2, 2], margin / scale)
+    fa = _wall_field(walls_a, sent_b[on_b], margin)
+    fb = _wall_field(walls_b, sent_a[on_a], margin / scale)
     if fa is None or fb is None:
         return t
     far = 1e6
@@ -1238,16 +1239,12 @@ def wall_search(a: OccupancyGrid, b: OccupancyGrid, t: SimilarityTransform, *, d
     True
     """
     m = np.asarray(t.params, dtype=float)
-    h, w = a.shape
     a_walls = a.occupied()
     pts = _strided_cells(b.occupied(), 1 << 40)
     if len(pts) == 0 or not a_walls.any():
         return []
     moved = pts @ m[:2, :2].T + m[:2, 2]
-    q = np.rint(moved).astype(np.int64)
-    on = (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0) & (q[:, 1] < h)
-    on[on] = a.known[q[on, 1], q[on, 0]]
-    moved = moved[on]
+    moved = moved[_on_known(a, moved)]
     if len(moved) < 10:
         return []
     moved = moved[_evenly(len(moved), max_points)] if len(moved) > max_points else moved
@@ -1258,9 +1255,7 @@ def wall_search(a: OccupancyGrid, b: OccupancyGrid, t: SimilarityTransform, *, d
     stretch = max(abs(float(f) - 1.0) for f in scales)
     swing = float(np.abs(moved - centre).max()) * (math.radians(abs(degrees)) + stretch) * 1.5 + 2.0
     grow = math.ceil(reach + swing + tolerance) + 1
-    x0, y0 = (np.floor(moved.min(axis=0)).astype(int) - grow).clip(0)
-    x1 = min(w, int(np.ceil(moved[:, 0].max())) + grow + 1)
-    y1 = min(h, int(np.ceil(moved[:, 1].max())) + grow + 1)
+    x0, y0, x1, y1 = _box_of(moved, grow, a.shape)
     near = cv2.distanceTransform((~a_walls[y0:y1, x0:x1]).astype(np.uint8), cv2.DIST_L2, 3) <= tolerance
     pad = int(reach) + 2
     hb, wb = near.shape
